@@ -1,0 +1,203 @@
+"""`DecoderConfig`: GO-1's Base config field names, validation, GO-1 import and JSON round-trip.
+
+One time convention for the whole library: t = 0 is the Gaussian prior, t = 1 is data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+DECODER_TYPES = ("DDPM", "flow_matching", "mean_flow")
+PREDICTION_TYPES = ("epsilon", "sample")
+# The DDPM schedules diffusers' DDPMScheduler and DPMSolverMultistepScheduler both accept.
+BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
+SDE_MODES = ("churn", "fixed", "explore")
+SAMPLERS = ("ode", "sde")
+NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
+
+
+@dataclass
+class DecoderConfig:
+    """Everything that defines an action decoder: which decoder, its sampler, and the network.
+
+    Field names of the first block follow GO-1's Base config so that GO-1 configs load as-is
+    (`from_go1`). `flow_sde_s_churn` is the noise level `s` of every SDE mode: churn
+    `s·√(ε/(t+ε))`, fixed `s`, explore `s·√((1−t)/t)`.
+    """
+
+    # --- decoder (GO-1 Base config names) ---
+    decoder_type: str = "DDPM"
+    num_train_timesteps: int = 1000
+    num_inference_timesteps: int = 10
+    prediction_type: str = "sample"
+    clip_sample: bool = False
+    beta_schedule: str = "squaredcos_cap_v2"
+    action_chunk_size: int = 16
+    # --- SDE sampling for flow matching and MeanFlow ---
+    flow_sde_use: bool = False
+    flow_sde_mode: str = "churn"
+    flow_sde_s_churn: float = 0.7
+    flow_sde_eps: float = 1e-4
+    flow_sde_learn_sigma: bool = False
+    flow_sde_sigma_init: float = 1.0
+    flow_sde_clip_t: float = 1e-2
+    flow_sde_return_logprob: bool = False
+    flow_sde_logprob_sigma_only: bool = True
+    # --- MeanFlow training recipe (NOTES §2); times in our convention (t = 0 noise) ---
+    meanflow_ratio_r_neq_t: float = 0.5
+    meanflow_time_mean: float = 0.4
+    meanflow_time_std: float = 1.0
+    meanflow_adaptive_p: float = 1.0
+    meanflow_adaptive_c: float = 1e-3
+    # --- the Action Expert network ---
+    state_dim: int = 39
+    action_dim: int = 4
+    hidden_size: int = 128
+    num_hidden_layers: int = 4
+    num_attention_heads: int = 4
+    num_key_value_heads: int = 2
+    intermediate_size: Optional[int] = None  # None: SwiGLU's 8/3·hidden, rounded to 8
+    rms_norm_eps: float = 1e-6
+    rope_theta: float = 10000.0
+    # --- conditioning (None: not used) ---
+    context_dim: Optional[int] = None
+    vlm_num_layers: Optional[int] = None
+    vlm_head_dim: Optional[int] = None
+    vlm_num_key_value_heads: Optional[int] = None
+    # --- policy ---
+    n_action_steps: int = 8
+    normalization_mode: str = "mean_std"
+    default_ctrl_freq: float = 10.0
+    extra: dict = field(default_factory=dict)  # free-form, carried through save/load
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        _choice("decoder_type", self.decoder_type, DECODER_TYPES)
+        _choice("prediction_type", self.prediction_type, PREDICTION_TYPES)
+        _choice("beta_schedule", self.beta_schedule, BETA_SCHEDULES)
+        _choice("flow_sde_mode", self.flow_sde_mode, SDE_MODES)
+        _choice("normalization_mode", self.normalization_mode, NORMALIZATION_MODES)
+        for name in ("num_train_timesteps", "num_inference_timesteps", "action_chunk_size",
+                     "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
+                     "num_attention_heads", "num_key_value_heads", "n_action_steps"):
+            _positive_int(name, getattr(self, name))
+        for name in ("intermediate_size", "context_dim", "vlm_num_layers", "vlm_head_dim",
+                     "vlm_num_key_value_heads"):
+            if getattr(self, name) is not None:
+                _positive_int(name, getattr(self, name))
+        for name in ("flow_sde_s_churn", "flow_sde_eps", "flow_sde_sigma_init", "flow_sde_clip_t",
+                     "meanflow_time_std", "meanflow_adaptive_c", "rms_norm_eps", "rope_theta",
+                     "default_ctrl_freq"):
+            _positive_float(name, getattr(self, name))
+        _positive_float("meanflow_adaptive_p", self.meanflow_adaptive_p, allow_zero=True)
+        _finite("meanflow_time_mean", self.meanflow_time_mean)
+        if not 0.0 <= self.meanflow_ratio_r_neq_t <= 1.0:
+            raise ValueError(f"meanflow_ratio_r_neq_t: expected a fraction in [0, 1], "
+                             f"got {self.meanflow_ratio_r_neq_t!r}")
+        if self.flow_sde_clip_t >= 1.0:
+            raise ValueError(f"flow_sde_clip_t: expected a value in (0, 1), got {self.flow_sde_clip_t!r}")
+        if self.n_action_steps > self.action_chunk_size:
+            raise ValueError(f"n_action_steps: expected at most action_chunk_size="
+                             f"{self.action_chunk_size}, got {self.n_action_steps}")
+        if self.hidden_size % self.num_attention_heads:
+            raise ValueError(f"hidden_size: expected a multiple of num_attention_heads="
+                             f"{self.num_attention_heads}, got {self.hidden_size}")
+        if (self.hidden_size // self.num_attention_heads) % 2:
+            raise ValueError(f"hidden_size: head dim hidden_size/num_attention_heads must be even "
+                             f"for rotary positions, got {self.hidden_size}/{self.num_attention_heads}")
+        if self.num_attention_heads % self.num_key_value_heads:
+            raise ValueError(f"num_key_value_heads: expected a divisor of num_attention_heads="
+                             f"{self.num_attention_heads}, got {self.num_key_value_heads}")
+        vlm = (self.vlm_num_layers, self.vlm_head_dim, self.vlm_num_key_value_heads)
+        if any(v is not None for v in vlm) and any(v is None for v in vlm):
+            raise ValueError("vlm_num_layers, vlm_head_dim, vlm_num_key_value_heads: expected all "
+                             f"three set or all None, got {vlm}")
+        if self.flow_sde_use and self.decoder_type == "DDPM":
+            raise ValueError("flow_sde_use: the SDE sampler serves flow_matching and mean_flow; "
+                             "decoder_type='DDPM' samples with DPM-Solver (set flow_sde_use=False)")
+        if not isinstance(self.extra, dict):
+            raise ValueError(f"extra: expected a dict, got {type(self.extra).__name__}")
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def default_sampler(self) -> str:
+        return "sde" if self.flow_sde_use else "ode"
+
+    @property
+    def uses_vlm_cache(self) -> bool:
+        return self.vlm_num_layers is not None
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "DecoderConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"DecoderConfig: unknown field(s) {unknown}; known fields are "
+                             f"{sorted(known)}")
+        return cls(**dict(data))
+
+    def to_json(self, path: Optional[str | Path] = None) -> str:
+        text = json.dumps(self.to_dict(), indent=2, sort_keys=True)
+        if path is not None:
+            Path(path).write_text(text + "\n")
+        return text
+
+    @classmethod
+    def from_json(cls, text_or_path: str | Path) -> "DecoderConfig":
+        p = Path(text_or_path)
+        text = p.read_text() if (isinstance(text_or_path, Path) or not str(text_or_path).lstrip().startswith("{")) else str(text_or_path)
+        return cls.from_dict(json.loads(text))
+
+    @classmethod
+    def from_go1(cls, args: Any, **overrides: Any) -> "DecoderConfig":
+        """Read a GO-1 model-arguments object (any attribute holder) or dict.
+
+        Fields of ours found on `args` are taken; GO-1's other fields are ignored. GO-1's
+        `state_token_num` and `ctrl_freqs` describe the old prefix and are not needed here.
+        """
+        src = dict(args) if isinstance(args, Mapping) else dict(vars(args))
+        known = {f.name for f in fields(cls)} - {"extra"}
+        values = {k: src[k] for k in known if k in src}
+        # GO-1 names the action dimension and chunk length differently in places.
+        aliases = {"action_dim": ("action_dims",), "action_chunk_size": ("action_chunk", "chunk_size"),
+                   "state_dim": ("state_dims",)}
+        for ours, theirs in aliases.items():
+            for name in theirs:
+                if ours not in values and name in src:
+                    values[ours] = src[name]
+        values.update(overrides)
+        return cls(**values)
+
+
+def _choice(name: str, value: Any, allowed: tuple) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name}: expected one of {list(allowed)}, got {value!r}")
+
+
+def _positive_int(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+
+def _positive_float(name: str, value: Any, allow_zero: bool = False) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (value == 0 and not allow_zero):
+        kind = "a non-negative" if allow_zero else "a positive"
+        raise ValueError(f"{name}: expected {kind} finite number, got {value!r}")
+
+
+def _finite(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")

@@ -1,0 +1,13 @@
+"""The math: samplers and losses as pure functions over callables (no networks here)."""
+
+from .ddpm import ddpm_loss, sample_ddpm
+from .losses import flow_matching_loss, meanflow_loss, meanflow_target
+from .paths import interpolate, score_from_velocity, time_grid
+from .samplers import (SDEResult, chain_log_prob, sample_meanflow, sample_ode, sample_sde,
+                       velocity_from_meanflow)
+from .sigma import ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, make_sigma
+
+__all__ = ["ChurnSigma", "ExploringSigma", "FixedSigma", "LearnableSigma", "SDEResult",
+           "chain_log_prob", "ddpm_loss", "flow_matching_loss", "interpolate", "make_sigma",
+           "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
+           "sample_sde", "score_from_velocity", "time_grid", "velocity_from_meanflow"]

@@ -1,0 +1,113 @@
+"""Training losses for flow matching and MeanFlow, over callables.
+
+`cond` (optional) holds batch-aligned conditioning passed to the callable as keyword
+arguments and sliced together with the rows when a loss splits the batch (MeanFlow calls
+the r = t rows without JVP): tensors `[B, ...]`, None, or dataclasses of those.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from .paths import AvgVelocity, Velocity, check_chunk, checked_call, interpolate
+
+
+def _rows(obj: Any, rows: slice) -> Any:
+    if obj is None:
+        return None
+    if isinstance(obj, Tensor):
+        return obj[rows]
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.replace(obj, **{f.name: _rows(getattr(obj, f.name), rows)
+                                           for f in dataclasses.fields(obj) if f.init})
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(_rows(o, rows) for o in obj)
+    return obj
+
+
+def slice_cond(cond: Optional[Mapping[str, Any]], rows: slice) -> dict:
+    return {k: _rows(v, rows) for k, v in (cond or {}).items()}
+
+
+def _bcast(t: Tensor, like: Tensor) -> Tensor:
+    return t.reshape(-1, *([1] * (like.dim() - 1)))
+
+
+def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[torch.Generator] = None,
+                       cond: Optional[Mapping[str, Any]] = None) -> Tensor:
+    """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries."""
+    check_chunk(actions, "actions")
+    a = actions.float() if actions.dtype != torch.float64 else actions
+    t = torch.rand(a.shape[0], generator=generator, device=a.device, dtype=a.dtype)
+    e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
+    z = interpolate(e, a, t)
+    v = checked_call(lambda x, tt: velocity(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
+    return (v - (a - e)).square().mean()
+
+
+def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, v: Tensor):
+    """(u, target) with u = u_θ(z, t, r) and target = sg(v − (t − r)·du/dt).
+
+    du/dt is the total derivative along the path: JVP with tangent (v, 1, 0) on (z, t, r).
+    The target is detached (the MeanFlow paper's stop-gradient): the loss must not
+    backpropagate through the JVP.
+    """
+    u, dudt = torch.func.jvp(avg_velocity, (z, t, r), (v.to(z.dtype), torch.ones_like(t),
+                                                        torch.zeros_like(r)))
+    dtype = v.dtype
+    target = v - _bcast(t - r, v).to(dtype) * dudt.to(dtype)
+    return u.to(dtype), target.detach()
+
+
+def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: float,
+                          generator: Optional[torch.Generator] = None, device=None,
+                          dtype: torch.dtype = torch.float32):
+    """(t, r, n): t ≤ r from two ordered logit-normal draws; rows n: have r = t.
+
+    Logit-normal with `mean` in our direction (the paper's −0.4 with t = 1 as noise is
+    +0.4 here). The first n = round(ratio·B) rows keep r ≠ t; rows are i.i.d., so which
+    rows get r = t does not matter, and a fixed split costs no host sync.
+    """
+    s = torch.sigmoid(mean + std * torch.randn(batch, 2, generator=generator, device=device, dtype=dtype))
+    t, r = s.min(1).values, s.max(1).values
+    n = int(round(ratio_r_neq_t * batch))
+    r = torch.cat([r[:n], t[n:]])
+    return t, r, n
+
+
+def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optional[torch.Generator] = None,
+                  cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
+                  time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 1.0,
+                  adaptive_c: float = 1e-3) -> Tensor:
+    """MeanFlow loss with the recipe of NOTES §2.
+
+    Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
+    weight w = sg(1 / (error + c)^p); loss = mean(w·error). Rows with r = t have target v
+    and are called without JVP (free speed).
+    """
+    check_chunk(actions, "actions")
+    a = actions.float() if actions.dtype != torch.float64 else actions
+    B = a.shape[0]
+    t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype)
+    e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
+    z, v = interpolate(e, a, t), a - e
+    deltas = []
+    if n > 0:
+        sub = slice(0, n)
+        c = slice_cond(cond, sub)
+        u, target = meanflow_target(lambda x, tt, rr: avg_velocity(x, tt, rr, **c), z[sub], t[sub],
+                                    r[sub], v[sub])
+        deltas.append(u - target)
+    if n < B:
+        sub = slice(n, B)
+        c = slice_cond(cond, sub)
+        u = checked_call(lambda x, tt: avg_velocity(x, tt, tt, **c), z[sub], t[sub], dtype=a.dtype,
+                         name="avg_velocity")
+        deltas.append(u - v[sub])
+    error = torch.cat(deltas).square().mean((1, 2))                       # [B]
+    weight = (error.detach() + adaptive_c).pow(-adaptive_p)
+    return (weight * error).mean()

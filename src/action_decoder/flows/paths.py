@@ -1,0 +1,77 @@
+"""The straight path between noise and data, time grids, and the checks every sampler shares.
+
+Convention (the whole library): t = 0 is the Gaussian prior, t = 1 is data,
+    z_t = (1 − t)·e + t·a,   v = dz_t/dt = a − e,
+and on this path the score is  ∇log p_t(x) = (t·v(x, t) − x) / (1 − t).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+Velocity = Callable[[Tensor, Tensor], Tensor]            # v(x [B,H,D], t [B]) -> [B,H,D]
+AvgVelocity = Callable[[Tensor, Tensor, Tensor], Tensor]  # u(x, t [B], r [B]) -> [B,H,D]
+
+
+def time_grid(steps: int, device=None, dtype: torch.dtype = torch.float32) -> Tensor:
+    """Uniform ascending grid `[steps + 1]` from 0 (noise) to 1 (data)."""
+    check_steps(steps)
+    return torch.linspace(0.0, 1.0, steps + 1, device=device, dtype=dtype)
+
+
+def interpolate(noise: Tensor, actions: Tensor, t: Tensor) -> Tensor:
+    """z_t = (1 − t)·e + t·a with t `[B]` broadcast over the chunk."""
+    t = t.reshape(-1, *([1] * (actions.dim() - 1)))
+    return (1 - t) * noise + t * actions
+
+
+def score_from_velocity(x: Tensor, v: Tensor, t: Tensor, clip_t: float = 0.0) -> Tensor:
+    """∇log p_t(x) = (t·v − x) / (1 − t), with 1 − t floored at `clip_t`."""
+    t = t.reshape(-1, *([1] * (x.dim() - 1)))
+    return (t * v - x) / (1 - t).clamp_min(clip_t)
+
+
+def compute_dtype(noise: Tensor) -> torch.dtype:
+    """Integrate in float32 whatever the network returns; float64 when the noise is float64."""
+    return torch.float64 if noise.dtype == torch.float64 else torch.float32
+
+
+def check_steps(steps, name: str = "steps") -> None:
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"{name}: expected a positive integer number of steps, got {steps!r}")
+
+
+def check_chunk(x: Tensor, name: str = "noise") -> None:
+    if not isinstance(x, Tensor) or x.dim() != 3:
+        got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"{name}: expected a tensor of shape [B, H, D], got {got}")
+    if not x.is_floating_point():
+        raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def resolve_grid(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch.dtype) -> Tensor:
+    """The grid a sampler integrates on: `grid` if given (validated), else uniform with `steps`."""
+    if grid is None:
+        return time_grid(steps, device=like.device, dtype=dtype)
+    grid = torch.as_tensor(grid)
+    if grid.dim() != 1 or grid.numel() < 2:
+        raise ValueError(f"grid: expected an ascending 1-D time grid [K+1] from 0 to 1, "
+                         f"got shape {tuple(grid.shape)}")
+    grid = grid.to(device=like.device, dtype=dtype)
+    # One host sync per call, only for a user-given grid.
+    if not bool((grid.diff() > 0).all()) or float(grid[0]) < 0 or float(grid[-1]) > 1:
+        raise ValueError(f"grid: expected strictly ascending times within [0, 1], "
+                         f"got {grid.tolist()}")
+    return grid
+
+
+def checked_call(fn: Callable, x: Tensor, *args: Tensor, dtype: torch.dtype, name: str) -> Tensor:
+    """Call a network callable and bring its output to the integration dtype."""
+    out = fn(x, *args)
+    if not isinstance(out, Tensor) or out.shape != x.shape:
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+        raise ValueError(f"{name}: expected an output of the input's shape {tuple(x.shape)}, got {got}")
+    return out.to(dtype)

@@ -1,0 +1,174 @@
+"""Losses: the MeanFlow target against the closed-form average velocity, the recipe, DDPM
+training ↔ sampling consistency for both prediction types."""
+
+import pytest
+import torch
+from torch import nn
+
+from action_decoder import (DecoderConfig, ddpm_loss, flow_matching_loss, meanflow_loss, meanflow_target,
+                            sample_ddpm)
+from action_decoder.flows.ddpm import inference_scheduler
+from action_decoder.flows.losses import sample_meanflow_times
+from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
+
+
+@pytest.fixture(scope="module")
+def gaussian():
+    return Gaussian(torch.tensor([[0.7, -1.2, 0.3]], dtype=torch.float64), 0.4)
+
+
+def _points(n=32, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    z = torch.randn(n, 1, 3, generator=g, dtype=torch.float64)
+    s = torch.rand(n, 2, generator=g, dtype=torch.float64) * 0.95
+    return z, s.min(1).values, s.max(1).values
+
+
+def test_meanflow_target_returns_exact_u_and_is_detached(gaussian):
+    z, t, r = _points()
+    theta = nn.Parameter(torch.ones((), dtype=torch.float64))
+    u, target = meanflow_target(lambda x, tt, rr: theta * gaussian.avg_velocity(x, tt, rr), z, t, r,
+                                gaussian.velocity(z, t))
+    assert torch.allclose(u, gaussian.avg_velocity(z, t, r), atol=1e-10)
+    # With the exact u and the exact marginal velocity the identity holds: target == u.
+    assert torch.allclose(target, u, atol=1e-8)
+    assert not target.requires_grad and u.requires_grad
+
+
+def test_wrong_tangent_or_sign_would_fail(gaussian):
+    """The same identity with a broken ingredient is far from u: the test above has teeth."""
+    z, t, r = _points()
+    v = gaussian.velocity(z, t)
+    u_exact = gaussian.avg_velocity(z, t, r)
+    gap = (t - r).reshape(-1, 1, 1)
+
+    def target_with(tangent, sign=-1.0):
+        _, dudt = torch.func.jvp(gaussian.avg_velocity, (z, t, r), tangent)
+        return v + sign * gap * dudt
+
+    one, zero = torch.ones_like(t), torch.zeros_like(t)
+    assert torch.allclose(target_with((v, one, zero)), u_exact, atol=1e-8)     # the right one
+    for wrong in [target_with((v, zero, zero)),                               # no ∂/∂t
+                  target_with((v, one, one)),                                 # r moving with t
+                  target_with((torch.zeros_like(v), one, zero)),              # no ∂/∂z·v
+                  target_with((v, one, zero), sign=+1.0)]:                    # wrong sign
+        assert (wrong - u_exact).abs().max() > 1e-2
+
+
+def test_meanflow_loss_gradient_has_stop_gradient_and_skips_jvp_on_r_equal_t(gaussian):
+    """The loss equals an independent reference (JVP on every row, target detached)."""
+    a = gaussian.sample(64, torch.Generator().manual_seed(3)).float()
+    net = nn.Sequential(nn.Linear(5, 32), nn.Tanh(), nn.Linear(32, 3))
+
+    def u(x, t, r):
+        return net(torch.cat([x, t.reshape(-1, 1, 1).expand(-1, 1, 1), r.reshape(-1, 1, 1)], -1))
+
+    loss = meanflow_loss(u, a, torch.Generator().manual_seed(7), ratio_r_neq_t=0.25)
+    grads = torch.autograd.grad(loss, list(net.parameters()))
+
+    g = torch.Generator().manual_seed(7)
+    t, r, n = sample_meanflow_times(64, 0.25, 0.4, 1.0, g)
+    assert n == 16 and torch.equal(t[n:], r[n:]) and torch.all(r[:n] >= t[:n])
+    e = torch.randn(a.shape, generator=g)
+    z = (1 - t).reshape(-1, 1, 1) * e + t.reshape(-1, 1, 1) * a
+    v = a - e
+    out, dudt = torch.func.jvp(u, (z, t, r), (v, torch.ones_like(t), torch.zeros_like(r)))
+    err = (out - (v - (t - r).reshape(-1, 1, 1) * dudt).detach()).square().mean((1, 2))
+    ref = ((err.detach() + 1e-3).pow(-1.0) * err).mean()
+    ref_grads = torch.autograd.grad(ref, list(net.parameters()), retain_graph=True)
+    assert torch.allclose(loss, ref, rtol=1e-5)
+    for a_, b_ in zip(grads, ref_grads):
+        assert torch.allclose(a_, b_, rtol=1e-4, atol=1e-6)
+    # Without the stop-gradient the gradient differs: a missing sg() would be caught.
+    err_nosg = (out - (v - (t - r).reshape(-1, 1, 1) * dudt)).square().mean((1, 2))
+    bad = torch.autograd.grad(((err_nosg.detach() + 1e-3).pow(-1.0) * err_nosg).mean(),
+                              list(net.parameters()))
+    assert max((x - y).abs().max() for x, y in zip(bad, ref_grads)) > 1e-4
+
+
+def test_meanflow_times_are_logit_normal_and_ordered():
+    t, r, n = sample_meanflow_times(20000, 0.5, 0.4, 1.0, torch.Generator().manual_seed(0))
+    assert n == 10000 and torch.all(t <= r)
+    logits = torch.logit(torch.cat([t[:n], r[:n]]))
+    assert abs(float(logits.mean()) - 0.4) < 0.03   # both draws together keep the logit-normal mean
+
+
+def test_flow_matching_loss_minimised_by_exact_velocity():
+    gm = GaussianMixture.make([[[1.5, 0.5]], [[-1.0, -1.0]]], [0.3, 0.5], dtype=torch.float64)
+    a = gm.sample(4000, torch.Generator().manual_seed(0))
+    exact = flow_matching_loss(gm.velocity, a, torch.Generator().manual_seed(1))
+    # Same draws: loss(v + c) − loss(v) = c² + a zero-mean cross term (std ≈ 0.008 here).
+    for c in (0.3, -0.3):
+        shifted = flow_matching_loss(lambda x, t: gm.velocity(x, t) + c, a, torch.Generator().manual_seed(1))
+        assert 0.5 * c ** 2 < shifted - exact < 1.5 * c ** 2
+    # A loss whose target had the wrong sign (e − a) would be minimised by −v instead.
+    assert flow_matching_loss(lambda x, t: -gm.velocity(x, t), a, torch.Generator().manual_seed(1)) > exact + 1
+
+
+@pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
+def test_ddpm_loss_target_matches_prediction_type(prediction_type):
+    gm = GaussianMixture.make([[[1.5, 0.5]], [[-1.0, -1.0]]], [0.3, 0.5], dtype=torch.float64)
+    a = gm.sample(4000, torch.Generator().manual_seed(0))
+    cfg = DecoderConfig(prediction_type=prediction_type)
+    other = "sample" if prediction_type == "epsilon" else "epsilon"
+    alphas = inference_scheduler(cfg).alphas_cumprod
+    right = ddpm_loss(gm.ddpm_model(alphas, prediction_type), a, cfg, torch.Generator().manual_seed(1))
+    wrong = ddpm_loss(gm.ddpm_model(alphas, other), a, cfg, torch.Generator().manual_seed(1))
+    assert right < 0.5 * wrong
+
+
+@pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
+def test_sample_ddpm_with_exact_denoiser_reproduces_mixture(prediction_type):
+    gm = GaussianMixture.make([[[1.5, 0.5]], [[-1.0, -1.0]]], [0.3, 0.5], [0.4, 0.6])
+    cfg = DecoderConfig(prediction_type=prediction_type)
+    g = torch.Generator().manual_seed(4)
+    ref = gm.sample(2000, g)
+    model = gm.ddpm_model(inference_scheduler(cfg).alphas_cumprod, prediction_type)
+    x = sample_ddpm(model, torch.randn(2000, 1, 2, generator=g, dtype=torch.float64), cfg, steps=25)
+    floor = energy_distance(gm.sample(2000, g), gm.sample(2000, g))
+    assert energy_distance(x, ref) < 3 * floor + 1e-3
+    assert energy_distance(x + 0.3, ref) > 0.02
+
+
+def test_one_dpm_solver_step_returns_the_x0_prediction():
+    cfg = DecoderConfig(prediction_type="sample")
+    x0 = torch.randn(3, 2, 2)
+    out = sample_ddpm(lambda x, s: x0, torch.randn(3, 2, 2), cfg, steps=1)
+    assert torch.allclose(out, x0)
+
+
+@pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
+def test_ddpm_loss_trains_what_sample_ddpm_samples(prediction_type):
+    """A small network trained with ddpm_loss samples the data through sample_ddpm."""
+    torch.manual_seed(0)
+    gm = GaussianMixture.make([[[1.0]], [[-1.0]]], [0.15, 0.15], dtype=torch.float32)
+    cfg = DecoderConfig(prediction_type=prediction_type, num_inference_timesteps=10)
+    net = nn.Sequential(nn.Linear(2, 128), nn.SiLU(), nn.Linear(128, 128), nn.SiLU(), nn.Linear(128, 1))
+
+    def model(x, step):
+        return net(torch.cat([x, (step.float() / cfg.num_train_timesteps).reshape(-1, 1, 1)], -1))
+
+    opt = torch.optim.Adam(net.parameters(), 3e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(1500):
+        loss = ddpm_loss(model, gm.sample(256, g), cfg, g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        x = sample_ddpm(model, torch.randn(1000, 1, 1, generator=g), cfg)
+    # Two modes at ±1, balanced: a model trained on the other target would not get both.
+    assert abs(float((x > 0).float().mean()) - 0.5) < 0.1
+    assert float((x.abs() - 1).abs().median()) < 0.2
+    assert energy_distance(x, gm.sample(1000, g)) < 0.05
+
+
+def test_losses_reject_wrong_shapes():
+    cfg = DecoderConfig()
+    bad = torch.randn(4, 3)
+    with pytest.raises(ValueError, match="actions"):
+        flow_matching_loss(lambda x, t: x, bad)
+    with pytest.raises(ValueError, match="actions"):
+        meanflow_loss(lambda x, t, r: x, bad)
+    with pytest.raises(ValueError, match="actions"):
+        ddpm_loss(lambda x, s: x, bad, cfg)
