@@ -1,0 +1,212 @@
+"""SDE samplers against the closed-form mixture velocity and score: marginals, log-probs,
+gradient routing, stability."""
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from action_decoder import (ChurnSigma, DecoderConfig, ExploringSigma, FixedSigma, LearnableSigma,
+                            chain_log_prob, make_sigma, sample_sde, velocity_from_meanflow)
+from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
+
+N = 2000
+
+
+@pytest.fixture(scope="module")
+def mixture():
+    return GaussianMixture.make([[[1.5, 0.5]], [[-1.0, -1.0]]], [0.3, 0.5], [0.4, 0.6])
+
+
+def reference_em(mixture, noise, eps, sigma, steps, sign=+1.0):
+    """Independent Euler–Maruyama with the oracle's own score (not derived from v)."""
+    x, states = noise.clone(), [noise]
+    grid = torch.linspace(0, 1, steps + 1, dtype=torch.float64)
+    for k in range(steps):
+        t = grid[k].expand(len(x))
+        dt = float(grid[k + 1] - grid[k])
+        s = float(sigma(grid[k:k + 1]))
+        drift = mixture.velocity(x, t) + sign * 0.5 * s ** 2 * mixture.score(x, t)
+        x = x + drift * dt + s * math.sqrt(dt) * eps[:, k]
+        states.append(x)
+    return torch.stack(states, 1)
+
+
+def _floor(mixture, t=1.0, seed=50):
+    g = torch.Generator().manual_seed(seed)
+    draw = mixture.sample if t == 1.0 else (lambda n, g: mixture.marginal_sample(n, t, g))
+    return 3 * max(energy_distance(draw(N, g), draw(N, g)) for _ in range(3))
+
+
+SCHEDULES = {
+    "fixed-0.8": lambda: FixedSigma(0.8),
+    "fixed-1.5": lambda: FixedSigma(1.5),
+    "churn": lambda: ChurnSigma(0.7, 1e-4),
+    "explore": lambda: ExploringSigma(0.7),
+    "learnable": lambda: LearnableSigma(ExploringSigma(0.7), init=0.5),
+}
+
+
+@pytest.mark.parametrize("name", list(SCHEDULES))
+def test_sde_preserves_marginals(mixture, name):
+    sigma = SCHEDULES[name]()
+    g = torch.Generator().manual_seed(1)
+    noise = torch.randn(N, 1, 2, generator=g, dtype=torch.float64)
+    res = sample_sde(mixture.velocity, noise, steps=200, sigma=sigma, generator=g, clip_t=1e-3)
+    assert energy_distance(res.actions, mixture.sample(N, g)) < _floor(mixture)
+    # Not only the endpoint: the state at t = 0.5 has the exact marginal p_0.5.
+    assert energy_distance(res.chain[:, 100], mixture.marginal_sample(N, 0.5, g)) < _floor(mixture, 0.5)
+
+
+@pytest.mark.parametrize("name", ["fixed-0.8", "fixed-1.5"])
+def test_sample_sde_equals_independent_em_and_wrong_sign_fails(mixture, name):
+    sigma = SCHEDULES[name]()
+    g = torch.Generator().manual_seed(2)
+    noise = torch.randn(N, 1, 2, generator=g, dtype=torch.float64)
+    res = sample_sde(mixture.velocity, noise, steps=100, sigma=sigma, generator=g, clip_t=1e-3)
+    ref = reference_em(mixture, noise, res.eps, sigma, 100)
+    assert torch.allclose(res.chain, ref, atol=1e-6)
+    wrong = reference_em(mixture, noise, res.eps, sigma, 100, sign=-1.0)
+    floor = _floor(mixture, 0.5)
+    assert energy_distance(wrong[:, 50], mixture.marginal_sample(N, 0.5, g)) > 5 * floor
+
+
+def test_log_probs_match_torch_normal_and_forms_agree(mixture):
+    g = torch.Generator().manual_seed(3)
+    noise = torch.randn(64, 4, 2, dtype=torch.float64, generator=g)
+    sigma = ExploringSigma(0.7)
+    full = sample_sde(mixture.velocity, noise, 10, sigma, generator=torch.Generator().manual_seed(9),
+                      return_logprob=True, logprob="full")
+    eps = sample_sde(mixture.velocity, noise, 10, sigma, generator=torch.Generator().manual_seed(9),
+                     return_logprob=True, logprob="eps")
+    ref = torch.distributions.Normal(full.means, full.stds[..., None, None]).log_prob(full.chain[:, 1:]).sum((-2, -1))
+    assert torch.allclose(full.step_log_probs, ref, atol=1e-9)
+    assert torch.allclose(eps.step_log_probs, ref, atol=1e-9)
+    assert torch.allclose(full.log_prob, ref.sum(1))
+    # The means are those of the marginal-preserving drift, computed from the oracle's score.
+    grid = full.grid
+    x, t = full.chain[:, 3], grid[3].expand(64)
+    s = sigma(grid[3:4])
+    mean = x + (mixture.velocity(x, t) + 0.5 * s ** 2 * mixture.score(x, t)) * (grid[4] - grid[3])
+    assert torch.allclose(full.means[:, 3], mean, atol=1e-9)
+    # The recorded chain re-scored under the same velocity: PPO ratio exactly 1.
+    again = chain_log_prob(mixture.velocity, full.chain, sigma, grid=full.grid)
+    assert torch.allclose(again, full.step_log_probs, atol=1e-9)
+    mean_form = sample_sde(mixture.velocity, noise, 10, sigma, generator=torch.Generator().manual_seed(9),
+                           return_logprob=True, reduce="mean")
+    assert torch.allclose(mean_form.step_log_probs, ref / 8)
+
+
+def test_float32_ratio_is_one_with_a_network():
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Linear(3, 64), nn.Tanh(), nn.Linear(64, 2))
+
+    def velocity(x, t):
+        return net(torch.cat([x, t.reshape(-1, 1, 1).expand(-1, x.shape[1], 1)], -1))
+
+    sigma = ExploringSigma(0.7)
+    with torch.no_grad():
+        res = sample_sde(velocity, torch.randn(32, 8, 2), 10, sigma, return_logprob=True)
+        again = chain_log_prob(velocity, res.chain, sigma, grid=res.grid)
+    assert res.step_log_probs.dtype == torch.float32
+    assert torch.allclose((again - res.step_log_probs).exp(), torch.ones(32, 10), atol=1e-4)
+
+
+def test_gradient_routing():
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Linear(3, 32), nn.Tanh(), nn.Linear(32, 2))
+
+    def velocity(x, t):
+        return net(torch.cat([x, t.reshape(-1, 1, 1).expand(-1, x.shape[1], 1)], -1))
+
+    sigma = LearnableSigma(ExploringSigma(0.7), init=0.3)
+    params = list(net.parameters()) + [sigma.log_scale]
+    res = sample_sde(velocity, torch.randn(16, 4, 2), 5, sigma, return_logprob=True, logprob="eps")
+    grads = torch.autograd.grad(res.log_prob.sum(), params, allow_unused=True, retain_graph=True)
+    assert all(g is None or torch.all(g == 0) for g in grads[:-1])     # entropy: not the network
+    assert grads[-1] is not None and grads[-1].abs() > 0               # only σ
+    # The reparameterised actions do reach the network (the Q-term path).
+    assert torch.autograd.grad(res.actions.sum(), net[0].weight, retain_graph=True)[0].abs().sum() > 0
+    # A stored (detached) chain re-scored: gradient reaches the network (PPO).
+    lp = chain_log_prob(velocity, res.chain.detach(), sigma, grid=res.grid)
+    g_net = torch.autograd.grad(lp.sum(), net[0].weight)[0]
+    assert g_net.abs().sum() > 0
+
+
+@pytest.mark.parametrize("name", list(SCHEDULES))
+def test_no_nan_or_inf_for_any_step_count(mixture, name):
+    sigma = SCHEDULES[name]()
+    noise = torch.randn(8, 2, 2, generator=torch.Generator().manual_seed(0))
+
+    def bf16_velocity(x, t):
+        return mixture.velocity(x.double(), t.double()).to(torch.bfloat16)
+
+    for steps in range(1, 101):
+        res = sample_sde(bf16_velocity, noise.bfloat16(), steps, sigma, return_logprob=True,
+                         generator=torch.Generator().manual_seed(steps))
+        assert res.actions.dtype == torch.bfloat16 and res.log_prob.dtype == torch.float32
+        for x in (res.chain, res.step_log_probs, res.log_prob):
+            assert torch.isfinite(x).all(), (name, steps)
+
+
+def test_mf_sde_boundary_keeps_gaussian_mean_and_std():
+    gauss = Gaussian(torch.tensor([[0.5, -1.0]], dtype=torch.float64), 0.3)
+    g = torch.Generator().manual_seed(4)
+    noise = torch.randn(8000, 1, 2, dtype=torch.float64, generator=g)
+    v = velocity_from_meanflow(gauss.avg_velocity, "boundary")
+    out = sample_sde(v, noise, 200, FixedSigma(0.8), generator=g, clip_t=1e-3).actions
+    assert torch.allclose(out.mean(0), gauss.mean, atol=0.02)
+    assert torch.allclose(out.std(0), torch.full_like(gauss.mean, 0.3), atol=0.02)
+
+
+def test_squash_once_matches_transformed_distribution():
+    mean_fn = lambda x, t: torch.full_like(x, 0.4)   # noqa: E731
+    noise = torch.randn(16, 3, 2, dtype=torch.float64)
+    res = sample_sde(mean_fn, noise, 1, FixedSigma(0.9), return_logprob=True, squash=True,
+                     generator=torch.Generator().manual_seed(0))
+    base = torch.distributions.Normal(res.means[:, 0], res.stds[:, 0, None, None])
+    dist = torch.distributions.TransformedDistribution(base, [torch.distributions.TanhTransform()])
+    assert torch.allclose(res.actions, torch.tanh(res.chain[:, -1]))
+    assert torch.allclose(res.log_prob, dist.log_prob(res.actions).sum((-2, -1)), atol=1e-6)
+    assert torch.allclose(res.step_log_probs.sum(1) - res.squash_log_det, res.log_prob)
+
+
+def test_generator_reproducibility(mixture):
+    noise = torch.randn(4, 2, 2, dtype=torch.float64)
+    a = sample_sde(mixture.velocity, noise, 5, 0.5, generator=torch.Generator().manual_seed(3))
+    b = sample_sde(mixture.velocity, noise, 5, 0.5, generator=torch.Generator().manual_seed(3))
+    c = sample_sde(mixture.velocity, noise, 5, 0.5, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(a.chain, b.chain) and not torch.equal(a.chain, c.chain)
+
+
+def test_schedules():
+    t = torch.tensor([0.0, 0.1, 0.5, 1.0], dtype=torch.float64)
+    churn = ChurnSigma(0.7, 1e-4)(t)
+    assert torch.allclose(churn, 0.7 * torch.sqrt(1 - t / (t + 1e-4)))
+    assert churn[1] < 0.01       # documented: churn stops exploring after t ≈ 0.1
+    explore = ExploringSigma(0.7)(t)
+    assert explore[2] > 0.5 and explore[3] == 0 and torch.isfinite(explore).all()
+    learn = LearnableSigma(ChurnSigma(0.7, 1e-4), init=0.1)
+    assert learn.multiplier.item() == 0.1
+    assert torch.equal(learn(t), ChurnSigma(0.7, 1e-4)(t) * 0.1)
+    assert isinstance(make_sigma(DecoderConfig(flow_sde_mode="fixed", flow_sde_s_churn=0.3)), FixedSigma)
+    assert isinstance(make_sigma(DecoderConfig(flow_sde_mode="explore")), ExploringSigma)
+    made = make_sigma(DecoderConfig(flow_sde_learn_sigma=True, flow_sde_sigma_init=0.25))
+    assert isinstance(made, LearnableSigma) and made.multiplier.item() == 0.25
+    assert isinstance(made.base, ChurnSigma)
+
+
+def test_bad_arguments():
+    f = lambda x, t: x   # noqa: E731
+    noise = torch.randn(2, 3, 1)
+    for kwargs, field in [({"logprob": "exact"}, "logprob"), ({"reduce": "max"}, "reduce"),
+                          ({"clip_t": 0.0}, "clip_t"), ({"steps": 0}, "steps"),
+                          ({"sigma": "big"}, "sigma")]:
+        with pytest.raises(ValueError, match=field):
+            sample_sde(f, noise, **kwargs)
+    res = sample_sde(f, noise, 4, 0.5)
+    with pytest.raises(ValueError, match="grid"):
+        chain_log_prob(f, res.chain, 0.5, grid=torch.linspace(0, 1, 4))
+    with pytest.raises(ValueError, match="chain"):
+        chain_log_prob(f, res.chain[:, 0], 0.5)
