@@ -16,7 +16,7 @@ from ..config import DecoderConfig
 class ChurnSigma(nn.Module):
     """GO-1's churn schedule `s·√(1 − t/(t+ε))` (= `s·√(ε/(t+ε))`).
 
-    Beware: with s = 0.7, ε = 1e-4 it is 0.7 at t = 0 but 0.007 by t = 0.1 — the chain
+    Beware: with s = 0.7, ε = 1e-4 it is 0.7 at t = 0, 0.022 at t = 0.1, 0.007 at t = 1: the chain
     explores in its first step only. Kept because configs name it; `ExploringSigma`
     keeps exploring over the whole interval.
     """

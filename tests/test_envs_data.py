@@ -1,0 +1,163 @@
+"""Meta-World tasks, seeded layouts, demonstrations, datasets and closed-loop evaluation."""
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+pytest.importorskip("metaworld")
+
+from action_decoder.data import (  # noqa: E402
+    ChunkDataset,
+    EpisodeDataset,
+    compute_stats,
+    concat_datasets,
+    generate_demos,
+    load_dataset,
+    write_episodes,
+)
+from action_decoder.envs import (  # noqa: E402
+    demo_seeds,
+    eval_seeds,
+    evaluate,
+    expert_policy,
+    make_env,
+    resolve_tasks,
+)
+
+
+@pytest.fixture(scope="module")
+def reach_demos(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("ACTION_DECODER_CACHE", str(tmp_path_factory.mktemp("cache")))
+    yield generate_demos("metaworld/reach", 2, seed=0)
+    mp.undo()
+
+
+def test_resolve_tasks():
+    assert resolve_tasks("metaworld/push-v3") == resolve_tasks("metaworld/push") == ["push-v3"]
+    assert resolve_tasks("metaworld/push, metaworld/reach,metaworld/push") == ["push-v3", "reach-v3"]
+    assert len(resolve_tasks("metaworld/MT10")) == 10
+    groups = resolve_tasks("metaworld/medium,metaworld/hard,metaworld/very_hard")
+    assert len(groups) == 22 and len(set(groups)) == 22
+    assert "stick-pull-v3" in resolve_tasks("metaworld/very_hard")
+    for bad in ("metaworld/pushh", "metaworld/push,nope", ""):
+        with pytest.raises(ValueError, match="metaworld/<task>"):
+            resolve_tasks(bad)
+
+
+def _layout(env, seed):
+    obs = env.reset(seed=seed)[0]
+    return np.concatenate([obs[:18], obs[36:]])  # hand, objects and goal
+
+
+def test_layouts_reproducible_and_disjoint():
+    env, other = make_env("push", seed=123), make_env("push", seed=7)
+    np.testing.assert_array_equal(_layout(env, 5), _layout(other, 5))
+    assert not np.allclose(_layout(env, 5), _layout(env, 6))
+    assert set(demo_seeds(0, 50)).isdisjoint(eval_seeds(0, 50))
+    demo = np.stack([_layout(env, s) for s in demo_seeds(0, 10)])
+    evals = np.stack([_layout(env, s) for s in eval_seeds(0, 10)])
+    goals_differ = np.abs(demo[:, None, -3:] - evals[None, :, -3:]).max(-1) > 1e-6
+    assert goals_differ.all()
+    with pytest.raises(ValueError, match="seed"):
+        demo_seeds(999_990, 20)
+
+
+def test_episode_cap_raises():
+    env = make_env("reach", seed=0)
+    env.reset(seed=0)
+    for _ in range(env.max_episode_steps):
+        env.step(np.zeros(4))
+    with pytest.raises(ValueError):
+        env.step(np.zeros(4))
+
+
+def test_demos_layout_and_dataset(reach_demos):
+    root = reach_demos
+    assert root.name == "reach-v3-n2-s0" and root.parent.name == "metaworld"
+    assert sorted(p.name for p in (root / "data" / "chunk-000").iterdir()) == ["episode_000000.parquet", "episode_000001.parquet"]
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 2 and info["features"]["observation.state"]["shape"] == [39]
+    assert info["features"]["action"]["shape"] == [4] and info["fps"] == 80.0
+    assert json.loads((root / "meta" / "tasks.jsonl").read_text().splitlines()[0]) == {"task_index": 0, "task": "reach-v3"}
+    table = pq.read_table(root / "data" / "chunk-000" / "episode_000000.parquet")
+    for column in ("observation.state", "action", "episode_index", "frame_index", "timestamp", "task_index", "next.success", "next.reward"):
+        assert column in table.column_names
+    assert table["next.success"].to_pylist()[-1]
+    assert generate_demos("metaworld/reach", 2, seed=0) == root  # cached
+
+    ds = load_dataset(root)
+    assert ds.num_episodes == 2 and ds.states.shape == (info["total_frames"], 39) and ds.actions.shape[1] == 4
+    assert np.abs(ds.actions).max() <= 1.0
+    for stats, dim in ((ds.stats["observation.state"], 39), (ds.stats["action"], 4)):
+        assert all(stats[k].shape == (dim,) for k in ("mean", "std", "min", "max"))
+    state_std = ds.stats["observation.state"]["std"]
+    assert state_std.min() == pytest.approx(1e-2)  # constant dims (e.g. unused object slots) floored
+
+
+def test_chunk_padding_at_episode_end(reach_demos):
+    ds = load_dataset(reach_demos)
+    chunks = ChunkDataset(ds, horizon=8)
+    length = int(ds.episode_lengths[0])
+    last = chunks[length - 3]
+    expected = torch.from_numpy(ds.actions[[length - 3, length - 2, length - 1] + [length - 1] * 5])
+    assert torch.equal(last["actions"], expected)
+    assert last["action_is_pad"].tolist() == [False] * 3 + [True] * 5
+    first_of_next = chunks[length]
+    assert torch.equal(first_of_next["state"], torch.from_numpy(ds.states[length]))
+    assert not first_of_next["action_is_pad"].any() and first_of_next["task_index"] == 0
+    batch = next(iter(torch.utils.data.DataLoader(chunks, batch_size=4)))
+    assert batch["state"].shape == (4, 39) and batch["actions"].shape == (4, 8, 4) and batch["action_is_pad"].dtype == torch.bool
+    assert len(ChunkDataset(ds, 8, episodes=1)) == length
+
+
+def test_multitask_concat(reach_demos):
+    ds = load_dataset(reach_demos)
+    other = EpisodeDataset(ds.states, ds.actions, ds.task_index, ds.episode_lengths, ["push-v3"], ds.fps)
+    both = concat_datasets([ds, other, ds.select(1)])
+    assert both.tasks == ["reach-v3", "push-v3"] and both.num_episodes == 5
+    chunks = ChunkDataset(both, horizon=4)
+    assert chunks[ds.num_frames]["task_index"] == 1 and chunks[-1]["task_index"] == 0
+
+
+def test_stats_floor():
+    stats = compute_stats({"x": np.array([[1.0, 0.0], [1.0, 2.0]])})["x"]
+    np.testing.assert_allclose(stats["std"], [1e-2, 1.0])
+    np.testing.assert_allclose(stats["min"], [1.0, 0.0])
+
+
+def _write_tiny(root, actions):
+    episode = {"observation.state": np.zeros((len(actions), 3)), "action": actions, "task_index": 0,
+               "next.reward": np.zeros(len(actions)), "next.success": np.zeros(len(actions), bool)}
+    write_episodes(root, [episode, episode], ["t"], fps=10)
+
+
+def test_load_dataset_rejects_nan_and_missing(tmp_path):
+    bad = np.ones((5, 2))
+    bad[3, 1] = np.nan
+    _write_tiny(tmp_path / "nan", bad)
+    with pytest.raises(ValueError, match=r"'action'.*episode 0"):
+        load_dataset(tmp_path / "nan")
+    with pytest.raises(ValueError, match="parquet"):
+        load_dataset(tmp_path / "empty")
+    _write_tiny(tmp_path / "ok", np.ones((5, 2)))
+    path = tmp_path / "ok" / "data" / "chunk-000" / "episode_000001.parquet"
+    pq.write_table(pq.read_table(path).drop(["action"]), path)
+    with pytest.raises(ValueError, match="missing column.*'action'"):
+        load_dataset(tmp_path / "ok")
+
+
+def test_evaluate_expert_and_zero_policy():
+    expert = expert_policy("metaworld/reach")
+    done = []
+    result = evaluate(lambda s, t: expert(s)[:, None], "metaworld/reach", episodes=2, seed=0,
+                      n_action_steps=1, progress=lambda i, n: done.append(i))
+    assert result["success_rate"] == 1.0 and done == [1, 2]
+    assert result["seeds"] == eval_seeds(0, 2) and max(result["lengths"]) < 500
+    zero = evaluate(lambda s, t: np.zeros((len(s), 8, 4)), "metaworld/reach", episodes=2, n_action_steps=8, max_steps=100)
+    assert zero["success_rate"] == 0.0 and zero["lengths"] == [100, 100]
+    with pytest.raises(ValueError, match="policy_fn output"):
+        evaluate(lambda s, t: np.zeros((len(s), 2, 4)), "metaworld/reach", episodes=1, n_action_steps=4)
