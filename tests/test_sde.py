@@ -188,12 +188,12 @@ def test_schedules():
     explore = ExploringSigma(0.7)(t)
     assert explore[2] > 0.5 and explore[3] == 0 and torch.isfinite(explore).all()
     learn = LearnableSigma(ChurnSigma(0.7, 1e-4), init=0.1)
-    assert learn.multiplier.item() == 0.1
+    assert learn.multiplier == torch.tensor(0.1)   # exactly init (GO-1 started at softplus(0.1))
     assert torch.equal(learn(t), ChurnSigma(0.7, 1e-4)(t) * 0.1)
     assert isinstance(make_sigma(DecoderConfig(flow_sde_mode="fixed", flow_sde_s_churn=0.3)), FixedSigma)
     assert isinstance(make_sigma(DecoderConfig(flow_sde_mode="explore")), ExploringSigma)
     made = make_sigma(DecoderConfig(flow_sde_learn_sigma=True, flow_sde_sigma_init=0.25))
-    assert isinstance(made, LearnableSigma) and made.multiplier.item() == 0.25
+    assert isinstance(made, LearnableSigma) and made.multiplier == torch.tensor(0.25)
     assert isinstance(made.base, ChurnSigma)
 
 

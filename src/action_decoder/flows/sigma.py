@@ -74,7 +74,8 @@ class LearnableSigma(nn.Module):
         return self.init * torch.exp(self.log_scale)
 
     def forward(self, t: Tensor) -> Tensor:
-        return self.base(t) * self.multiplier.to(t.dtype)
+        # init stays a Python float so that the start is exact in any dtype.
+        return self.base(t) * (self.init * torch.exp(self.log_scale.to(t.dtype)))
 
 
 def make_sigma(config: DecoderConfig) -> nn.Module:
