@@ -148,17 +148,18 @@ class DecoderConfig:
                              f"{sorted(known)}")
         return cls(**dict(data))
 
-    def to_json(self, path: Optional[str | Path] = None) -> str:
-        text = json.dumps(self.to_dict(), indent=2, sort_keys=True)
-        if path is not None:
-            Path(path).write_text(text + "\n")
-        return text
+    def to_json(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
 
     @classmethod
-    def from_json(cls, text_or_path: str | Path) -> "DecoderConfig":
-        p = Path(text_or_path)
-        text = p.read_text() if (isinstance(text_or_path, Path) or not str(text_or_path).lstrip().startswith("{")) else str(text_or_path)
-        return cls.from_dict(json.loads(text))
+    def from_json(cls, path: str | Path) -> "DecoderConfig":
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"config: cannot read a DecoderConfig JSON from {path}: {err}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"config: expected a JSON object in {path}, got {type(data).__name__}")
+        return cls.from_dict(data)
 
     @classmethod
     def from_go1(cls, args: Any, **overrides: Any) -> "DecoderConfig":

@@ -10,7 +10,6 @@ import threading
 from typing import Any, Callable, Mapping, Optional
 
 import torch
-from diffusers import DDPMScheduler, DPMSolverMultistepScheduler
 from torch import Tensor
 
 from ..config import DecoderConfig
@@ -28,23 +27,26 @@ def _key(config: DecoderConfig):
     return (config.num_train_timesteps, config.beta_schedule, config.prediction_type)
 
 
-def _cached(kind: type, config: DecoderConfig, **kwargs):
+def _cached(kind: str, config: DecoderConfig, **kwargs):
+    """One scheduler per thread and configuration; diffusers is imported on first use (slow)."""
     cache = _local.__dict__.setdefault("schedulers", {})
     key = (kind, _key(config))
     if key not in cache:
-        cache[key] = kind(num_train_timesteps=config.num_train_timesteps,
-                          beta_schedule=config.beta_schedule,
-                          prediction_type=config.prediction_type, **kwargs)
+        import diffusers
+        cache[key] = getattr(diffusers, kind)(num_train_timesteps=config.num_train_timesteps,
+                                              beta_schedule=config.beta_schedule,
+                                              prediction_type=config.prediction_type, **kwargs)
     return cache[key]
 
 
-def training_scheduler(config: DecoderConfig) -> DDPMScheduler:
-    return _cached(DDPMScheduler, config, clip_sample=config.clip_sample)
+def training_scheduler(config: DecoderConfig):
+    """diffusers' DDPMScheduler for `add_noise`."""
+    return _cached("DDPMScheduler", config, clip_sample=config.clip_sample)
 
 
-def inference_scheduler(config: DecoderConfig) -> DPMSolverMultistepScheduler:
-    # final_sigmas_type="zero": the last step lands on the x0 prediction, so 1 step is x0.
-    return _cached(DPMSolverMultistepScheduler, config, algorithm_type="dpmsolver++",
+def inference_scheduler(config: DecoderConfig):
+    """diffusers' DPMSolverMultistepScheduler; final_sigmas_type="zero" makes 1 step return x0."""
+    return _cached("DPMSolverMultistepScheduler", config, algorithm_type="dpmsolver++",
                    solver_order=2, final_sigmas_type="zero",
                    lambda_min_clipped=_LAMBDA_MIN.get(config.beta_schedule, -float("inf")))
 

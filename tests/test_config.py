@@ -1,0 +1,63 @@
+"""DecoderConfig: GO-1 names and defaults, validation naming the field, GO-1 import, JSON."""
+
+import types
+
+import pytest
+
+from action_decoder import DecoderConfig
+
+
+def test_go1_defaults():
+    c = DecoderConfig()
+    assert (c.decoder_type, c.num_train_timesteps, c.beta_schedule, c.prediction_type) == (
+        "DDPM", 1000, "squaredcos_cap_v2", "sample")
+    assert c.flow_sde_use is False and c.default_sampler == "ode"
+    assert DecoderConfig(decoder_type="flow_matching", flow_sde_use=True).default_sampler == "sde"
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"decoder_type": "unknown"}, "decoder_type"),
+    ({"prediction_type": "v"}, "prediction_type"),
+    ({"num_inference_timesteps": -1}, "num_inference_timesteps"),
+    ({"num_train_timesteps": 0}, "num_train_timesteps"),
+    ({"beta_schedule": "cosine"}, "beta_schedule"),
+    ({"flow_sde_mode": "wild"}, "flow_sde_mode"),
+    ({"flow_sde_sigma_init": 0.0}, "flow_sde_sigma_init"),
+    ({"flow_sde_clip_t": 1.5}, "flow_sde_clip_t"),
+    ({"meanflow_ratio_r_neq_t": 1.2}, "meanflow_ratio_r_neq_t"),
+    ({"num_attention_heads": 3}, "hidden_size"),
+    ({"num_key_value_heads": 3}, "num_key_value_heads"),
+    ({"n_action_steps": 32}, "n_action_steps"),
+    ({"vlm_num_layers": 2}, "vlm_num_layers"),
+    ({"decoder_type": "DDPM", "flow_sde_use": True}, "flow_sde_use"),
+    ({"action_dim": 2.5}, "action_dim"),
+])
+def test_invalid_values_name_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        DecoderConfig(**kwargs)
+
+
+def test_error_lists_allowed_values():
+    with pytest.raises(ValueError, match=r"expected one of \['DDPM', 'flow_matching', 'mean_flow'\], got 'unknown'"):
+        DecoderConfig(decoder_type="unknown")
+
+
+def test_from_go1_object_and_dict():
+    go1 = types.SimpleNamespace(decoder_type="mean_flow", num_inference_timesteps=2, flow_sde_use=True,
+                                flow_sde_s_churn=0.5, action_chunk_size=30, state_token_num=3,
+                                ctrl_freqs=30, some_vlm_option="ignored")
+    c = DecoderConfig.from_go1(go1, action_dim=7)
+    assert (c.decoder_type, c.num_inference_timesteps, c.flow_sde_use, c.flow_sde_s_churn,
+            c.action_chunk_size, c.action_dim) == ("mean_flow", 2, True, 0.5, 30, 7)
+    assert DecoderConfig.from_go1({"decoder_type": "flow_matching"}).decoder_type == "flow_matching"
+    with pytest.raises(ValueError, match="decoder_type"):
+        DecoderConfig.from_go1({"decoder_type": "GAN"})
+
+
+def test_json_round_trip(tmp_path):
+    c = DecoderConfig(decoder_type="mean_flow", context_dim=12, extra={"task": "push-v3"})
+    path = tmp_path / "config.json"
+    c.to_json(path)
+    assert DecoderConfig.from_json(path) == c
+    with pytest.raises(ValueError, match="unknown field"):
+        DecoderConfig.from_dict({**c.to_dict(), "bogus": 1})
