@@ -5,6 +5,7 @@ Time convention (the whole library): t = 0 is the Gaussian prior, t = 1 is data.
 """
 
 from .config import DecoderConfig
+from .policy import ActionDecoderPolicy, PolicyOutput
 from .flows import (ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, SDEResult,
                     chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     meanflow_target, sample_ddpm, sample_meanflow, sample_ode, sample_sde,
@@ -12,7 +13,7 @@ from .flows import (ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, SDER
 
 __version__ = "0.1.0"
 
-__all__ = ["ChurnSigma", "DecoderConfig", "ExploringSigma", "FixedSigma", "LearnableSigma",
+__all__ = ["ActionDecoderPolicy", "PolicyOutput", "ChurnSigma", "DecoderConfig", "ExploringSigma", "FixedSigma", "LearnableSigma",
            "SDEResult", "chain_log_prob", "ddpm_loss", "flow_matching_loss", "make_sigma",
            "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
            "sample_sde", "time_grid", "velocity_from_meanflow"]

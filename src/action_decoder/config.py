@@ -17,7 +17,6 @@ PREDICTION_TYPES = ("epsilon", "sample")
 # The DDPM schedules diffusers' DDPMScheduler and DPMSolverMultistepScheduler both accept.
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
-SAMPLERS = ("ode", "sde")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 
 

@@ -1,0 +1,74 @@
+"""State and action normalisation from data statistics, stored with the weights as buffers."""
+
+from __future__ import annotations
+
+from typing import Mapping, Optional
+
+import torch
+from torch import Tensor, nn
+
+STAT_NAMES = ("mean", "std", "min", "max")
+# Constant dimensions (Meta-World has several) must not blow up when divided by their spread.
+MIN_SPREAD = 1e-2
+
+
+class Normalizer(nn.Module):
+    """Maps one feature to and from the network's units.
+
+    mean_std: (x − mean)/std;  min_max: to [−1, 1] by 2·(x − min)/(max − min) − 1;
+    identity: unchanged. Buffers hold every statistic so any mode can be reloaded.
+    """
+
+    def __init__(self, name: str, dim: int, mode: str):
+        super().__init__()
+        self.name, self.dim, self.mode = name, dim, mode
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+        self.register_buffer("min", -torch.ones(dim))
+        self.register_buffer("max", torch.ones(dim))
+
+    def set_stats(self, stats: Mapping[str, object]) -> None:
+        for key in STAT_NAMES:
+            if key not in stats:
+                raise ValueError(f"stats[{self.name!r}]: expected keys {list(STAT_NAMES)}, "
+                                 f"missing {key!r}")
+            value = torch.as_tensor(stats[key], dtype=torch.float32).flatten()
+            if value.shape != (self.dim,):
+                raise ValueError(f"stats[{self.name!r}][{key!r}]: expected {self.dim} values, "
+                                 f"got shape {tuple(value.shape)}")
+            if not torch.isfinite(value).all():
+                raise ValueError(f"stats[{self.name!r}][{key!r}]: contains NaN or Inf")
+            getattr(self, key).copy_(value)
+
+    def _scale_shift(self):
+        if self.mode == "mean_std":
+            return self.std.clamp_min(MIN_SPREAD), self.mean
+        if self.mode == "min_max":
+            half = ((self.max - self.min) / 2).clamp_min(MIN_SPREAD / 2)
+            return half, (self.max + self.min) / 2
+        return None, None
+
+    def normalize(self, x: Tensor) -> Tensor:
+        scale, shift = self._scale_shift()
+        return x if scale is None else (x - shift.to(x.dtype)) / scale.to(x.dtype)
+
+    def unnormalize(self, x: Tensor) -> Tensor:
+        scale, shift = self._scale_shift()
+        return x if scale is None else x * scale.to(x.dtype) + shift.to(x.dtype)
+
+
+def make_normalizers(state_dim: int, action_dim: int, mode: str,
+                     stats: Optional[Mapping[str, Mapping[str, object]]] = None) -> nn.ModuleDict:
+    """`{"state": ..., "actions": ...}`; `stats` uses those keys (or LeRobot's
+    "observation.state" / "action")."""
+    norms = nn.ModuleDict({"state": Normalizer("state", state_dim, mode),
+                           "actions": Normalizer("actions", action_dim, mode)})
+    if stats is not None:
+        aliases = {"state": ("state", "observation.state"), "actions": ("actions", "action")}
+        for key, names in aliases.items():
+            found = next((stats[n] for n in names if n in stats), None)
+            if found is None:
+                raise ValueError(f"stats: expected an entry {names[0]!r} (or {names[1]!r}), "
+                                 f"got keys {sorted(stats)}")
+            norms[key].set_stats(found)
+    return norms

@@ -1,0 +1,305 @@
+"""`ActionDecoderPolicy`: binds the Action Expert to the math of `flows/`.
+
+It validates and normalises a batch, builds the conditioning prefix once per chunk, hands
+bound callables to a loss or a sampler, un-normalises the actions and queues them. The
+network knows nothing of sampling; the samplers know nothing of the network.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Optional
+
+import torch
+from torch import Tensor, nn
+
+from .config import DecoderConfig
+from .expert import ActionExpert, Prefix
+from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
+                    sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow)
+from .normalize import make_normalizers
+
+SAMPLERS = (None, "ode", "sde", "euler")
+CONFIG_NAME, WEIGHTS_NAME = "config.json", "model.safetensors"
+
+
+@dataclass
+class PolicyOutput:
+    """Training: `loss` (+ `metrics`). Sampling: `actions` [B, H, D] in environment units and,
+    when asked, `log_prob` [B] / `step_log_probs` [B, K] (densities of the normalised chunk,
+    float32) and the SDE `chain` [B, K+1, H, D] (normalised) with its `grid` [K+1]."""
+
+    loss: Optional[Tensor] = None
+    actions: Optional[Tensor] = None
+    log_prob: Optional[Tensor] = None
+    step_log_probs: Optional[Tensor] = None
+    chain: Optional[Tensor] = None
+    grid: Optional[Tensor] = None
+    metrics: dict = field(default_factory=dict)
+
+
+@dataclass
+class Bound:
+    """The network bound to one batch's conditioning: the callables the math consumes."""
+
+    velocity: Callable[[Tensor, Tensor], Tensor]
+    avg_velocity: Callable[[Tensor, Tensor, Tensor], Tensor]
+    model_output: Callable[[Tensor, Tensor], Tensor]
+    batch_size: int
+
+
+class ActionDecoderPolicy(nn.Module):
+    """A LeRobot-style policy over any of the three decoders (see API.md)."""
+
+    def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None):
+        super().__init__()
+        if not isinstance(config, DecoderConfig):
+            raise ValueError(f"config: expected a DecoderConfig, got {type(config).__name__}")
+        self.config = config
+        self.model = ActionExpert(config)
+        self.normalizers = make_normalizers(config.state_dim, config.action_dim,
+                                            config.normalization_mode, stats)
+        # The noise schedule is a submodule so that a learnable σ is a policy parameter.
+        self.sigma = make_sigma(config)
+        self._queue: deque = deque()
+        self._warned_proxy = False
+
+    # ------------------------------------------------------------------ batch handling
+    def _validate(self, batch: Mapping[str, Any], need_actions: bool) -> None:
+        cfg = self.config
+        if not isinstance(batch, Mapping):
+            raise ValueError(f"batch: expected a dict of tensors, got {type(batch).__name__}")
+        state = _tensor(batch, "state", f"[B, {cfg.state_dim}]")
+        if state.dim() != 2 or state.shape[1] != cfg.state_dim:
+            raise ValueError(f"batch['state']: expected shape [B, {cfg.state_dim}], got {list(state.shape)}")
+        _finite(state, "state")
+        b = state.shape[0]
+        if need_actions:
+            shape = [b, cfg.action_chunk_size, cfg.action_dim]
+            actions = _tensor(batch, "actions", str(shape))
+            if list(actions.shape) != shape:
+                raise ValueError(f"batch['actions']: expected shape {shape}, got {list(actions.shape)}")
+            _finite(actions, "actions")
+        if batch.get("ctrl_freq") is not None:
+            f = batch["ctrl_freq"]
+            if not isinstance(f, Tensor) or list(f.shape) != [b]:
+                got = list(f.shape) if isinstance(f, Tensor) else type(f).__name__
+                raise ValueError(f"batch['ctrl_freq']: expected a tensor of shape [{b}], got {got}")
+        if batch.get("context") is not None:
+            ctx = batch["context"]
+            want = f"[{b}, L, {cfg.context_dim}]"
+            if cfg.context_dim is None:
+                raise ValueError("batch['context']: this policy has context_dim=None; set "
+                                 "DecoderConfig.context_dim to condition on context tokens")
+            if not isinstance(ctx, Tensor) or ctx.dim() != 3 or ctx.shape[0] != b or ctx.shape[2] != cfg.context_dim:
+                got = list(ctx.shape) if isinstance(ctx, Tensor) else type(ctx).__name__
+                raise ValueError(f"batch['context']: expected shape {want}, got {got}")
+            mask = batch.get("context_mask")
+            if mask is not None and (not isinstance(mask, Tensor) or list(mask.shape) != list(ctx.shape[:2])):
+                got = list(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+                raise ValueError(f"batch['context_mask']: expected shape {list(ctx.shape[:2])}, got {got}")
+
+    def _prepare(self, batch: Mapping[str, Any]) -> dict:
+        """Normalised state, ctrl_freq and the conditioning prefix (built once)."""
+        param = next(self.model.parameters())
+        state = self.normalizers["state"].normalize(batch["state"].to(param.device, torch.float32))
+        ctrl = batch.get("ctrl_freq")
+        prefix = self.model.build_prefix(
+            context=_to(batch.get("context"), param.device), context_mask=_to(batch.get("context_mask"), param.device),
+            vlm_key_values=batch.get("vlm_key_values"), attention_mask=_to(batch.get("attention_mask"), param.device))
+        return {"state": state, "ctrl_freq": None if ctrl is None else ctrl.to(param.device, torch.float32),
+                "prefix": prefix}
+
+    def _net(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor, ctrl_freq: Optional[Tensor],
+             prefix: Optional[Prefix]) -> Tensor:
+        return self.model(x, t, r, state, ctrl_freq=ctrl_freq, prefix=prefix)
+
+    def _ddpm_time(self, timestep: Tensor) -> Tensor:
+        # diffusers' step 0 is data, T−1 noise; ours t = 1 is data.
+        return 1.0 - timestep.float() / self.config.num_train_timesteps
+
+    def bind(self, batch: Mapping[str, Any]) -> Bound:
+        """Validate and normalise `batch`, build its prefix once, return the bound callables."""
+        self._validate(batch, need_actions=False)
+        cond = self._prepare(batch)
+        state, ctrl, prefix = cond["state"], cond["ctrl_freq"], cond["prefix"]
+        return Bound(
+            velocity=lambda x, t: self._net(x, t, t, state, ctrl, prefix),
+            avg_velocity=lambda x, t, r: self._net(x, t, r, state, ctrl, prefix),
+            model_output=lambda x, s: self._net(x, self._ddpm_time(s), self._ddpm_time(s), state, ctrl, prefix),
+            batch_size=state.shape[0])
+
+    # ------------------------------------------------------------------ training
+    def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
+        self._validate(batch, need_actions=True)
+        cond = self._prepare(batch)
+        actions = self.normalizers["actions"].normalize(batch["actions"].to(cond["state"].device, torch.float32))
+        cfg = self.config
+        if cfg.decoder_type == "flow_matching":
+            loss = flow_matching_loss(lambda x, t, **c: self._net(x, t, t, **c), actions, generator, cond)
+        elif cfg.decoder_type == "mean_flow":
+            loss = meanflow_loss(self._net, actions, generator, cond,
+                                 ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, time_mean=cfg.meanflow_time_mean,
+                                 time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
+                                 adaptive_c=cfg.meanflow_adaptive_c)
+        else:
+            loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
+                             actions, cfg, generator, cond)
+        return PolicyOutput(loss=loss, metrics={"loss": loss.detach()})
+
+    # ------------------------------------------------------------------ sampling
+    def resolve_sampler(self, sampler: Optional[str]) -> str:
+        """The runtime choice overrides the config in both directions; unsafe mixes raise."""
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler: expected one of {list(SAMPLERS)}, got {sampler!r}")
+        cfg = self.config
+        chosen = sampler or cfg.default_sampler
+        if cfg.decoder_type == "DDPM" and chosen != "ode":
+            raise ValueError(f"sampler: decoder_type='DDPM' samples with DPM-Solver (sampler='ode' or "
+                             f"None); {chosen!r} needs a flow_matching or mean_flow decoder")
+        if cfg.decoder_type == "mean_flow" and chosen == "euler" and not self._warned_proxy:
+            warnings.warn("sampler='euler' on a mean_flow decoder integrates u(x, t, r=t) as a flow-"
+                          "matching velocity: an approximation (mixing table ⚠️); sampler='ode' is "
+                          "MeanFlow's native sampler", UserWarning, stacklevel=3)
+            self._warned_proxy = True
+        return chosen
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: Mapping[str, Any], sampler: Optional[str] = None,
+                             steps: Optional[int] = None, return_logprob: Optional[bool] = None,
+                             generator: Optional[torch.Generator] = None, noise: Optional[Tensor] = None):
+        """Sample a chunk [B, H, D] in environment units.
+
+        Returns the tensor, or a `PolicyOutput` when log-probs are returned (asked here, or
+        by `flow_sde_return_logprob` for the SDE sampler). For gradients through sampling
+        (SAC), call `sample(...)` instead.
+        """
+        out = self.sample(batch, sampler, steps, return_logprob, generator, noise)
+        return out if out.log_prob is not None else out.actions
+
+    def sample(self, batch: Mapping[str, Any], sampler: Optional[str] = None, steps: Optional[int] = None,
+               return_logprob: Optional[bool] = None, generator: Optional[torch.Generator] = None,
+               noise: Optional[Tensor] = None) -> PolicyOutput:
+        """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable."""
+        cfg = self.config
+        chosen = self.resolve_sampler(sampler)
+        want_lp = (cfg.flow_sde_return_logprob and chosen == "sde") if return_logprob is None \
+            else bool(return_logprob)
+        if want_lp and chosen != "sde":
+            raise ValueError(f"return_logprob: log-probs come from the SDE sampler; got sampler={chosen!r} "
+                             f"(deterministic samplers have no density)")
+        steps = cfg.num_inference_timesteps if steps is None else steps
+        bound = self.bind(batch)
+        param = next(self.model.parameters())
+        if noise is None:
+            noise = torch.randn((bound.batch_size, cfg.action_chunk_size, cfg.action_dim),
+                                generator=generator, device=param.device)
+        velocity = bound.velocity if cfg.decoder_type == "flow_matching" else \
+            velocity_from_meanflow(bound.avg_velocity, "boundary")
+        out = PolicyOutput()
+        if chosen == "sde":
+            res = sample_sde(velocity, noise, steps, self.sigma, generator=generator,
+                             return_logprob=want_lp, clip_t=cfg.flow_sde_clip_t,
+                             logprob="eps" if cfg.flow_sde_logprob_sigma_only else "full")
+            x, out.chain, out.grid = res.actions, res.chain, res.grid
+            out.log_prob, out.step_log_probs = res.log_prob, res.step_log_probs
+        elif chosen == "euler" or cfg.decoder_type == "flow_matching":
+            x = sample_ode(velocity, noise, steps)
+        elif cfg.decoder_type == "mean_flow":
+            x = sample_meanflow(bound.avg_velocity, noise, steps)
+        else:
+            x = sample_ddpm(bound.model_output, noise, cfg, steps)
+        out.actions = self.normalizers["actions"].unnormalize(x)
+        return out
+
+    def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor) -> Tensor:
+        """Per-step log-probs [B, K] of a stored SDE chain under the current weights (PPO)."""
+        if self.config.decoder_type == "DDPM":
+            raise ValueError("chain_log_prob: needs a flow_matching or mean_flow decoder, got DDPM")
+        bound = self.bind(batch)
+        velocity = bound.velocity if self.config.decoder_type == "flow_matching" else \
+            velocity_from_meanflow(bound.avg_velocity, "boundary")
+        return chain_log_prob(velocity, chain, self.sigma, grid=grid, clip_t=self.config.flow_sde_clip_t)
+
+    def forward(self, batch: Mapping[str, Any], sampler: Optional[str] = None, return_logprob: Optional[bool] = None,
+                steps: Optional[int] = None, generator: Optional[torch.Generator] = None) -> PolicyOutput:
+        """train(): the loss of `batch` (needs "actions"); eval(): a sampled chunk."""
+        if self.training:
+            return self.compute_loss(batch, generator)
+        with torch.no_grad():
+            return self.sample(batch, sampler, steps, return_logprob, generator)
+
+    @torch.no_grad()
+    def select_action(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> Tensor:
+        """One action [B, D]; a new chunk is sampled when the queue of n_action_steps runs out."""
+        if not self._queue:
+            chunk = self.sample(batch, return_logprob=False, generator=generator).actions
+            self._queue.extend(chunk[:, : self.config.n_action_steps].transpose(0, 1))
+        return self._queue.popleft()
+
+    def reset(self) -> None:
+        """Forget queued actions (call at every episode start)."""
+        self._queue.clear()
+
+    # ------------------------------------------------------------------ persistence
+    def save_pretrained(self, path: str | Path) -> None:
+        """`config.json` + `model.safetensors` (weights, normalisation stats, learnable σ)."""
+        from safetensors.torch import save_file
+
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        self.config.to_json(path / CONFIG_NAME)
+        tensors = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        tmp = path / (WEIGHTS_NAME + ".tmp")
+        save_file(tensors, str(tmp), metadata={"format": "pt", "library": "action_decoder"})
+        tmp.replace(path / WEIGHTS_NAME)
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "ActionDecoderPolicy":
+        from safetensors import SafetensorError
+        from safetensors.torch import load_file
+
+        path = Path(path)
+        for name in (CONFIG_NAME, WEIGHTS_NAME):
+            if not (path / name).is_file():
+                raise FileNotFoundError(f"checkpoint: {path} has no {name}; expected a directory written "
+                                        f"by save_pretrained ({CONFIG_NAME} + {WEIGHTS_NAME})")
+        policy = cls(DecoderConfig.from_json(path / CONFIG_NAME))
+        try:
+            tensors = load_file(str(path / WEIGHTS_NAME), device=str(map_location))
+        except (SafetensorError, OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"checkpoint: {path / WEIGHTS_NAME} is not a readable safetensors file ({err})") from None
+        missing, unexpected = [], []
+        own = policy.state_dict()
+        missing = sorted(set(own) - set(tensors))
+        unexpected = sorted(set(tensors) - set(own))
+        wrong = sorted(k for k in set(own) & set(tensors) if own[k].shape != tensors[k].shape)
+        if missing or unexpected or wrong:
+            raise ValueError(f"checkpoint: {path} does not match its config.json: missing {missing[:5]}, "
+                             f"unexpected {unexpected[:5]}, wrong shapes {wrong[:5]}")
+        policy.load_state_dict(tensors)
+        return policy.to(map_location)
+
+
+def _tensor(batch: Mapping[str, Any], key: str, shape: str) -> Tensor:
+    if key not in batch or batch[key] is None:
+        raise ValueError(f"batch[{key!r}]: missing; expected a tensor of shape {shape}; "
+                         f"got keys {sorted(batch)}")
+    value = batch[key]
+    if not isinstance(value, Tensor) or not value.is_floating_point():
+        got = f"dtype {value.dtype}" if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(f"batch[{key!r}]: expected a floating-point tensor of shape {shape}, got {got}")
+    return value
+
+
+def _finite(x: Tensor, key: str) -> None:
+    if not torch.isfinite(x).all():
+        raise ValueError(f"batch[{key!r}]: contains NaN or Inf (shape {list(x.shape)})")
+
+
+def _to(x: Optional[Tensor], device) -> Optional[Tensor]:
+    return x.to(device) if isinstance(x, Tensor) else x

@@ -1,0 +1,243 @@
+"""ActionDecoderPolicy: training and sampling for every decoder, conditioning, runtime
+sampler choice, save/load, call counts, validation."""
+
+import warnings
+
+import pytest
+import torch
+
+from action_decoder import ActionDecoderPolicy, DecoderConfig, PolicyOutput
+from action_decoder.expert import ActionExpert
+
+SMALL = dict(state_dim=5, action_dim=3, action_chunk_size=8, n_action_steps=4, hidden_size=32,
+             num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2, num_inference_timesteps=4)
+STATS = {"state": {"mean": [1.0] * 5, "std": [2.0] * 5, "min": [-3.0] * 5, "max": [5.0] * 5},
+         "actions": {"mean": [0.5, -0.5, 2.0], "std": [0.1, 0.2, 3.0], "min": [-1.0] * 3, "max": [1.0] * 3}}
+
+
+def make(decoder_type="flow_matching", stats=STATS, **kw):
+    torch.manual_seed(0)
+    return ActionDecoderPolicy(DecoderConfig(decoder_type=decoder_type, **{**SMALL, **kw}), stats)
+
+
+def batch(b=6, seed=0, actions=True):
+    g = torch.Generator().manual_seed(seed)
+    out = {"state": torch.randn(b, 5, generator=g)}
+    if actions:
+        out["actions"] = torch.randn(b, 8, 3, generator=g)
+    return out
+
+
+@pytest.mark.parametrize("decoder_type", ["DDPM", "flow_matching", "mean_flow"])
+def test_each_decoder_trains_and_samples(decoder_type):
+    policy = make(decoder_type)
+    opt = torch.optim.Adam(policy.parameters(), 1e-3)
+    out = policy(batch())
+    assert isinstance(out, PolicyOutput) and out.loss.dim() == 0 and torch.isfinite(out.loss)
+    out.loss.backward()
+    trainable = [p for p in policy.model.parameters() if p.requires_grad]
+    assert all(p.grad is not None for p in trainable)
+    assert sum(float(p.grad.abs().sum()) > 0 for p in trainable) > 0.9 * len(trainable)
+    opt.step()
+    policy.eval()
+    actions = policy.predict_action_chunk(batch(actions=False), generator=torch.Generator().manual_seed(0))
+    assert actions.shape == (6, 8, 3) and torch.isfinite(actions).all()
+
+
+def test_meanflow_training_through_attention_matches_explicit_softmax():
+    policy = make("mean_flow", meanflow_ratio_r_neq_t=1.0)
+    grads = []
+    for impl in ("auto", "eager"):
+        policy.model.attn_implementation = impl
+        policy.zero_grad()
+        policy(batch(), generator=torch.Generator().manual_seed(1)).loss.backward()
+        grads.append([p.grad.clone() for p in policy.model.parameters()])
+    for a, b in zip(*grads):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
+
+
+def test_normalisation_round_trip_and_env_units():
+    policy = make("flow_matching").eval()
+    noise = torch.zeros(2, 8, 3)
+    # Replace the network by zero velocity: the sample is the (zero) noise in normalised units,
+    # so in environment units it is the action mean.
+    policy.model.forward = lambda x, *a, **k: torch.zeros_like(x)
+    out = policy.sample(batch(2, actions=False), noise=noise).actions
+    assert torch.allclose(out, torch.tensor([0.5, -0.5, 2.0]).expand(2, 8, 3))
+
+
+def test_runtime_sampler_overrides_config_both_ways():
+    policy = make("flow_matching", flow_sde_use=True, flow_sde_return_logprob=True).eval()
+    b = batch(actions=False)
+    default = policy(b, generator=torch.Generator().manual_seed(0))
+    assert default.log_prob is not None and default.log_prob.shape == (6,)
+    ode1 = policy(b, sampler="ode", generator=torch.Generator().manual_seed(3))
+    ode2 = policy(b, sampler="ode", generator=torch.Generator().manual_seed(3))
+    assert ode1.log_prob is None and torch.equal(ode1.actions, ode2.actions)
+    assert policy(b, return_logprob=False, generator=torch.Generator().manual_seed(0)).log_prob is None
+    # An ODE config asked for the SDE at run time.
+    ode_policy = make("mean_flow").eval()
+    sde = ode_policy(b, sampler="sde", return_logprob=True)
+    assert sde.log_prob.shape == (6,) and torch.isfinite(sde.log_prob).all()
+    assert sde.log_prob.dtype == torch.float32 and sde.chain.shape == (6, 5, 8, 3)
+    with pytest.raises(ValueError, match="sampler"):
+        make("DDPM").eval()(b, sampler="sde")
+    with pytest.raises(ValueError, match="return_logprob"):
+        ode_policy(b, sampler="ode", return_logprob=True)
+    with pytest.raises(ValueError, match="sampler"):
+        ode_policy(b, sampler="fast")
+
+
+def test_euler_on_meanflow_warns():
+    policy = make("mean_flow").eval()
+    with pytest.warns(UserWarning, match="approximation"):
+        policy(batch(actions=False), sampler="euler")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make("flow_matching").eval()(batch(actions=False), sampler="euler")
+
+
+def test_learnable_sigma_is_a_policy_parameter():
+    policy = make("flow_matching", flow_sde_use=True, flow_sde_learn_sigma=True, flow_sde_sigma_init=0.2)
+    names = [n for n, _ in policy.named_parameters()]
+    assert "sigma.log_scale" in names
+    assert policy.sigma.multiplier == torch.tensor(0.2)
+
+
+def test_chain_log_prob_ratio_one_and_gradient():
+    policy = make("mean_flow", flow_sde_mode="explore").eval()
+    b = batch(actions=False)
+    out = policy(b, sampler="sde", return_logprob=True, generator=torch.Generator().manual_seed(0))
+    policy.train()
+    lp = policy.chain_log_prob(b, out.chain, out.grid)
+    assert torch.allclose(lp, out.step_log_probs, atol=1e-3, rtol=1e-5)
+    lp.sum().backward()
+    assert policy.model.head.weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("decoder_type", ["DDPM", "flow_matching", "mean_flow"])
+def test_save_load_identical_actions(tmp_path, decoder_type):
+    policy = make(decoder_type).eval()
+    policy.save_pretrained(tmp_path / "ckpt")
+    assert {p.name for p in (tmp_path / "ckpt").iterdir()} == {"config.json", "model.safetensors"}
+    loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt").eval()
+    b = batch(actions=False)
+    a = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(5))
+    c = loaded.predict_action_chunk(b, generator=torch.Generator().manual_seed(5))
+    assert torch.equal(a, c)
+    assert torch.equal(loaded.normalizers["actions"].std, torch.tensor([0.1, 0.2, 3.0]))
+
+
+def test_checkpoint_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        ActionDecoderPolicy.from_pretrained(tmp_path)
+    make().save_pretrained(tmp_path / "a")
+    (tmp_path / "a" / "model.safetensors").write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="safetensors"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "a")
+    make().save_pretrained(tmp_path / "b")
+    cfg = DecoderConfig.from_json(tmp_path / "b" / "config.json")
+    cfg.hidden_size = 64
+    cfg.to_json(tmp_path / "b" / "config.json")
+    with pytest.raises(ValueError, match="does not match"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "b")
+
+
+def test_from_go1_config_builds_a_policy():
+    go1 = {"decoder_type": "mean_flow", "flow_sde_use": True, "num_inference_timesteps": 2, **SMALL}
+    go1.pop("num_inference_timesteps")
+    policy = ActionDecoderPolicy(DecoderConfig.from_go1(go1)).eval()
+    assert policy.predict_action_chunk(batch(actions=False)).shape == (6, 8, 3)
+
+
+@pytest.mark.parametrize("decoder_type, sampler", [("DDPM", None), ("flow_matching", "ode"),
+                                                   ("flow_matching", "sde"), ("mean_flow", "ode"),
+                                                   ("mean_flow", "sde")])
+def test_network_called_k_times_and_prefix_once(decoder_type, sampler):
+    policy = make(decoder_type, context_dim=7).eval()
+    calls = {"forward": 0, "prefix": 0}
+    forward, build = ActionExpert.forward, ActionExpert.build_prefix
+
+    def counting_forward(self, *a, **k):
+        calls["forward"] += 1
+        return forward(self, *a, **k)
+
+    def counting_build(self, *a, **k):
+        calls["prefix"] += 1
+        return build(self, *a, **k)
+
+    b = {**batch(actions=False), "context": torch.randn(6, 3, 7), "context_mask": torch.ones(6, 3, dtype=torch.bool)}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ActionExpert, "forward", counting_forward)
+        mp.setattr(ActionExpert, "build_prefix", counting_build)
+        policy(b, sampler=sampler, steps=5)
+    assert calls == {"forward": 5, "prefix": 1}
+
+
+def test_masked_context_does_not_influence_actions():
+    policy = make("flow_matching", context_dim=7).eval()
+    ctx = torch.randn(6, 4, 7)
+    mask = torch.tensor([[1, 1, 0, 0]] * 6, dtype=torch.bool)
+    garbage = ctx.clone()
+    garbage[:, 2:] = 1e4
+    b = batch(actions=False)
+    a = policy.predict_action_chunk({**b, "context": ctx, "context_mask": mask}, generator=torch.Generator().manual_seed(0))
+    c = policy.predict_action_chunk({**b, "context": garbage, "context_mask": mask}, generator=torch.Generator().manual_seed(0))
+    d = policy.predict_action_chunk({**b, "context": garbage}, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(a, c, atol=1e-5) and not torch.allclose(a, d, atol=1e-3)
+
+
+def test_llama_kv_cache_conditions_training_and_sampling_without_mutation():
+    transformers = pytest.importorskip("transformers")
+    torch.manual_seed(0)
+    llama = transformers.LlamaForCausalLM(transformers.LlamaConfig(
+        vocab_size=50, hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
+        num_key_value_heads=2)).eval()
+    ids = torch.randint(0, 50, (6, 5))
+    attn = torch.ones(6, 5, dtype=torch.long)
+    attn[:, -1] = 0
+    with torch.no_grad():
+        cache = llama(input_ids=ids, attention_mask=attn, use_cache=True).past_key_values
+    before = [(k.clone(), v.clone()) for k, v in ((layer.keys, layer.values) for layer in cache.layers)]
+    policy = make("mean_flow", vlm_num_layers=2, vlm_head_dim=8, vlm_num_key_value_heads=2)
+    out = policy({**batch(), "vlm_key_values": cache, "attention_mask": attn})
+    out.loss.backward()
+    assert policy.model.conditioning.vlm_k_proj[0].weight.grad.abs().sum() > 0
+    policy.eval()
+    b = {**batch(actions=False), "vlm_key_values": cache, "attention_mask": attn}
+    a1 = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(0))
+    a2 = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(0))
+    a0 = policy.predict_action_chunk(batch(actions=False), generator=torch.Generator().manual_seed(0))
+    assert torch.equal(a1, a2) and not torch.allclose(a1, a0, atol=1e-4)
+    after = [(layer.keys, layer.values) for layer in cache.layers]
+    assert all(torch.equal(k0, k1) and torch.equal(v0, v1) for (k0, v0), (k1, v1) in zip(before, after))
+
+
+def test_select_action_queue_and_reset():
+    policy = make("flow_matching").eval()
+    calls = []
+    sample = policy.sample
+    policy.sample = lambda *a, **k: calls.append(1) or sample(*a, **k)
+    b = batch(2, actions=False)
+    actions = [policy.select_action(b) for _ in range(5)]
+    assert all(a.shape == (2, 3) for a in actions) and len(calls) == 2   # n_action_steps = 4
+    policy.reset()
+    policy.select_action(b)
+    assert len(calls) == 3
+
+
+@pytest.mark.parametrize("bad, key", [
+    ({"state": torch.randn(6, 4)}, "state"),
+    ({"actions": torch.randn(6, 8, 2)}, "actions"),
+    ({"actions": torch.randn(6, 7, 3)}, "actions"),
+    ({"state": torch.full((6, 5), float("nan"))}, "state"),
+    ({"actions": torch.full((6, 8, 3), float("inf"))}, "actions"),
+    ({"ctrl_freq": torch.ones(5)}, "ctrl_freq"),
+    ({"context": torch.randn(6, 2, 7)}, "context"),
+])
+def test_bad_batches_name_the_key(bad, key):
+    policy = make("flow_matching")
+    with pytest.raises(ValueError, match=rf"batch\['{key}'\]: "):
+        policy({**batch(), **bad})
+    with pytest.raises(ValueError, match=r"batch\['actions'\]: missing"):
+        policy(batch(actions=False))
