@@ -1,0 +1,132 @@
+"""The Action Expert (GO-1 style): a small transformer over [t, r, f, state, a_1..a_H] that
+attends bidirectionally to its own tokens and to a conditioning prefix.
+
+The head's output is whatever the decoder trains it to be (velocity, MeanFlow average
+velocity, DDPM ε or x0); the network does not know which.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+
+from ..config import DecoderConfig
+from .attention import ATTN_IMPLEMENTATIONS, rotary_cos_sin
+from .conditioning import ConditioningEncoder, Prefix
+from .embeddings import FREQ_PERIODS, TIME_PERIODS, ScalarEmbedding
+from .layers import ExpertBlock, RMSNorm
+
+
+def default_intermediate_size(hidden_size: int) -> int:
+    """SwiGLU's 8/3·hidden (same parameter count as a 4·hidden GELU MLP), rounded up to 8."""
+    return 8 * math.ceil(8 * hidden_size / 3 / 8)
+
+
+class ActionExpert(nn.Module):
+    """forward(x, t, r, state, ctrl_freq=None, prefix=None) -> [B, H, action_dim].
+
+    Set `attn_implementation` to "auto" (SDPA; explicit softmax under forward-mode AD),
+    "sdpa" or "eager" (explicit softmax always).
+    """
+
+    def __init__(self, config: DecoderConfig) -> None:
+        super().__init__()
+        self.config = config
+        hidden = config.hidden_size
+        self.head_dim = hidden // config.num_attention_heads
+        inter = config.intermediate_size or default_intermediate_size(hidden)
+        self.t_embed = ScalarEmbedding(hidden, TIME_PERIODS)
+        self.r_embed = ScalarEmbedding(hidden, TIME_PERIODS)
+        self.freq_embed = ScalarEmbedding(hidden, FREQ_PERIODS)
+        self.state_in = nn.Linear(config.state_dim, hidden)
+        self.action_in = nn.Linear(config.action_dim, hidden)
+        self.conditioning = ConditioningEncoder(config)
+        self.blocks = nn.ModuleList(
+            ExpertBlock(hidden, config.num_attention_heads, config.num_key_value_heads, inter,
+                        config.rms_norm_eps) for _ in range(config.num_hidden_layers))
+        self.norm = RMSNorm(hidden, config.rms_norm_eps)
+        self.head = nn.Linear(hidden, config.action_dim)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        # Small normal init; residual outputs scaled by depth (GPT-2) so the residual
+        # stream starts near its input; the head starts small so outputs start near 0.
+        residual_std = 0.02 / math.sqrt(2 * self.config.num_hidden_layers)
+        for name, module in self.named_modules():
+            if isinstance(module, nn.Linear):
+                std = residual_std if name.endswith(("o_proj", "down_proj")) else 0.02
+                nn.init.normal_(module.weight, std=std)
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
+
+    @property
+    def attn_implementation(self) -> str:
+        return self.blocks[0].attn.attn_implementation
+
+    @attn_implementation.setter
+    def attn_implementation(self, value: str) -> None:
+        if value not in ATTN_IMPLEMENTATIONS:
+            raise ValueError(f"attn_implementation: expected one of {list(ATTN_IMPLEMENTATIONS)}, got {value!r}")
+        for block in self.blocks:
+            block.attn.attn_implementation = value
+
+    def build_prefix(self, context: Optional[Tensor] = None, context_mask: Optional[Tensor] = None,
+                     vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None) -> Optional[Prefix]:
+        """Project the conditioning once per observation; pass the result to every forward."""
+        return self.conditioning(context, context_mask, vlm_key_values, attention_mask)
+
+    def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
+                ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:
+        """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow);
+        state [B, state_dim]; ctrl_freq [B] Hz (None: config.default_ctrl_freq).
+        Returns [B, H, action_dim] in x's dtype."""
+        b, horizon, _ = self._check(x, state, prefix)
+        dtype = self.head.weight.dtype
+        t, r = self._per_sample(t, b, x.device, "t"), self._per_sample(r, b, x.device, "r")
+        if ctrl_freq is None:
+            ctrl_freq = torch.full((b,), self.config.default_ctrl_freq, device=x.device)
+        ctrl_freq = self._per_sample(ctrl_freq, b, x.device, "ctrl_freq")
+        tokens = torch.cat([
+            torch.stack([self.t_embed(t), self.r_embed(r), self.freq_embed(ctrl_freq),
+                         self.state_in(state.to(dtype))], dim=1),                 # [B, 4, hidden]
+            self.action_in(x.to(dtype)),                                          # [B, H, hidden]
+        ], dim=1)                                                                 # [B, N, hidden]
+        n = tokens.shape[1]
+        cos, sin = rotary_cos_sin(n, self.head_dim, self.config.rope_theta, x.device, dtype)
+        mask = None  # own tokens always see each other; only prefix keys may be masked
+        if prefix is not None and not prefix.all_valid:
+            own = torch.ones(b, n, dtype=torch.bool, device=x.device)
+            mask = torch.cat([prefix.mask.to(x.device), own], dim=1)[:, None, None, :]  # [B, 1, 1, L+N]
+        h = tokens
+        for i, block in enumerate(self.blocks):
+            pk = prefix.keys[i] if prefix is not None else None
+            pv = prefix.values[i] if prefix is not None else None
+            h = block(h, cos, sin, pk, pv, mask)
+        return self.head(self.norm(h[:, n - horizon:])).to(x.dtype)
+
+    def _check(self, x: Tensor, state: Tensor, prefix: Optional[Prefix]) -> tuple[int, int, int]:
+        cfg = self.config
+        if x.dim() != 3 or x.shape[-1] != cfg.action_dim:
+            raise ValueError(f"x: expected shape [B, H, {cfg.action_dim}], got {list(x.shape)}")
+        b = x.shape[0]
+        if tuple(state.shape) != (b, cfg.state_dim):
+            raise ValueError(f"state: expected shape [{b}, {cfg.state_dim}], got {list(state.shape)}")
+        if prefix is not None:
+            if prefix.batch_size != b:
+                raise ValueError(f"prefix: expected batch size {b}, got {prefix.batch_size}")
+            if len(prefix.keys) != len(self.blocks):
+                raise ValueError(f"prefix: expected {len(self.blocks)} layers, got {len(prefix.keys)}")
+        return x.shape[0], x.shape[1], x.shape[2]
+
+    @staticmethod
+    def _per_sample(v: Tensor | float, b: int, device: torch.device, name: str) -> Tensor:
+        """A float tensor [B]; a scalar is broadcast to the batch."""
+        v = v if isinstance(v, Tensor) else torch.tensor(float(v), device=device)
+        if v.dim() == 0:
+            v = v.expand(b)
+        if tuple(v.shape) != (b,):
+            raise ValueError(f"{name}: expected shape [{b}] or a scalar, got {list(v.shape)}")
+        return v

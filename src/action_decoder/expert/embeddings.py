@@ -1,0 +1,44 @@
+"""Scalar embeddings for the expert's conditioning tokens (time t, time r, control frequency).
+
+A sinusoidal embedder is only informative over the range its periods cover. DDPM-style
+embedders (periods 1…10 000) are tuned for integer steps 0…999 and give near-constant
+features for t ∈ [0, 1]; times here therefore use pi0's periods 4e-3…4.0, while the
+control frequency (Hz, roughly 1…1000) keeps the DDPM-style range.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+TIME_PERIODS = (4e-3, 4.0)
+FREQ_PERIODS = (1.0, 1e4)
+
+
+def sinusoidal_features(x: Tensor, dim: int, min_period: float, max_period: float) -> Tensor:
+    """[B] -> [B, dim] (at least float32): sin/cos at `dim/2` geometrically spaced periods."""
+    if dim % 2:
+        raise ValueError(f"dim: expected an even width, got {dim}")
+    dtype = torch.promote_types(x.dtype, torch.float32)
+    fraction = torch.linspace(0.0, 1.0, dim // 2, device=x.device, dtype=dtype)
+    period = min_period * (max_period / min_period) ** fraction                # [dim/2]
+    angle = x.to(dtype)[:, None] * (2 * math.pi / period)[None, :]            # [B, dim/2]
+    return torch.cat([torch.sin(angle), torch.cos(angle)], dim=-1)
+
+
+class ScalarEmbedding(nn.Module):
+    """A per-sample scalar -> one hidden-size token: sinusoidal features, then an MLP."""
+
+    def __init__(self, hidden_size: int, periods: tuple[float, float]) -> None:
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.min_period, self.max_period = periods
+        self.mlp = nn.Sequential(nn.Linear(hidden_size, hidden_size), nn.SiLU(),
+                                 nn.Linear(hidden_size, hidden_size))
+
+    def forward(self, x: Tensor) -> Tensor:
+        """[B] -> [B, hidden_size] in the MLP's dtype."""
+        feats = sinusoidal_features(x, self.hidden_size, self.min_period, self.max_period)
+        return self.mlp(feats.to(self.mlp[0].weight.dtype))
