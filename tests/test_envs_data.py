@@ -16,9 +16,11 @@ from action_decoder.data import (  # noqa: E402
     concat_datasets,
     generate_demos,
     load_dataset,
+    load_demos,
     write_episodes,
 )
 from action_decoder.envs import (  # noqa: E402
+    MAX_EPISODE_STEPS,
     demo_seeds,
     eval_seeds,
     evaluate,
@@ -69,7 +71,7 @@ def test_layouts_reproducible_and_disjoint():
 def test_episode_cap_raises():
     env = make_env("reach", seed=0)
     env.reset(seed=0)
-    for _ in range(env.max_episode_steps):
+    for _ in range(MAX_EPISODE_STEPS):
         env.step(np.zeros(4))
     with pytest.raises(ValueError):
         env.step(np.zeros(4))
@@ -123,6 +125,13 @@ def test_multitask_concat(reach_demos):
     assert chunks[ds.num_frames]["task_index"] == 1 and chunks[-1]["task_index"] == 0
 
 
+def test_load_demos_multitask(reach_demos, monkeypatch):
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(reach_demos.parents[1]))
+    ds = load_demos("metaworld/reach,metaworld/push", 2, seed=0)
+    assert ds.tasks == ["reach-v3", "push-v3"] and ds.num_episodes == 4
+    assert ds.task_index[: ds.episode_lengths[:2].sum()].max() == 0 and ds.task_index[-1] == 1
+
+
 def test_stats_floor():
     stats = compute_stats({"x": np.array([[1.0, 0.0], [1.0, 2.0]])})["x"]
     np.testing.assert_allclose(stats["std"], [1e-2, 1.0])
@@ -159,5 +168,7 @@ def test_evaluate_expert_and_zero_policy():
     assert result["seeds"] == eval_seeds(0, 2) and max(result["lengths"]) < 500
     zero = evaluate(lambda s, t: np.zeros((len(s), 8, 4)), "metaworld/reach", episodes=2, n_action_steps=8, max_steps=100)
     assert zero["success_rate"] == 0.0 and zero["lengths"] == [100, 100]
+    again = evaluate(lambda s, t: expert(s)[:, None], "metaworld/reach", episodes=3, n_action_steps=1, num_envs=2)
+    assert again["lengths"][:2] == result["lengths"] and again["returns"][:2] == result["returns"]  # env reuse, num_envs
     with pytest.raises(ValueError, match="policy_fn output"):
         evaluate(lambda s, t: np.zeros((len(s), 2, 4)), "metaworld/reach", episodes=1, n_action_steps=4)

@@ -1,0 +1,24 @@
+"""Demonstrations, LeRobot-layout datasets, chunked training samples and normalisation statistics."""
+
+from .chunks import ChunkDataset
+from .demos import cache_root, generate_demos, load_demos
+from .episodes import ACTION, STATE, EpisodeDataset, concat_datasets
+from .lerobot_format import load_dataset, write_episodes
+from .stats import STD_FLOOR, compute_stats, load_stats, save_stats
+
+__all__ = [
+    "ACTION",
+    "STATE",
+    "STD_FLOOR",
+    "ChunkDataset",
+    "EpisodeDataset",
+    "cache_root",
+    "compute_stats",
+    "concat_datasets",
+    "generate_demos",
+    "load_dataset",
+    "load_demos",
+    "load_stats",
+    "save_stats",
+    "write_episodes",
+]

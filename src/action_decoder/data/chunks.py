@@ -1,0 +1,61 @@
+"""Training samples for chunking policies: one per frame, the state and the next H actions.
+
+Near an episode's end the chunk is completed by repeating the last action and marked in
+``action_is_pad`` (LeRobot's convention), so every frame is a training sample and the
+loss can ignore, or keep, the padded part.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from .episodes import EpisodeDataset
+
+
+class ChunkDataset(Dataset):
+    """``{"state": [S], "actions": [H, D], "action_is_pad": [H] bool, "task_index": int}`` per frame.
+
+    ``episodes`` keeps the first k episodes (an int) or those at given positions, e.g. for
+    demo-count experiments; for several tasks pass ``concat_datasets([...])``.
+    """
+
+    def __init__(self, dataset: EpisodeDataset, horizon: int, episodes: int | Sequence[int] | None = None):
+        if not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon: expected an integer >= 1, got {horizon!r}")
+        if episodes is not None:
+            dataset = dataset.select(episodes)
+        self.dataset, self.horizon = dataset, int(horizon)
+        self.states = torch.from_numpy(dataset.states)
+        self.actions = torch.from_numpy(dataset.actions)
+        self.task_index = dataset.task_index.tolist()
+        ends = dataset.episode_starts + dataset.episode_lengths - 1
+        self.last_frame = torch.from_numpy(np.repeat(ends, dataset.episode_lengths))
+        self.offsets = torch.arange(self.horizon)
+
+    @property
+    def stats(self) -> dict:
+        return self.dataset.stats
+
+    @property
+    def tasks(self) -> list[str]:
+        return self.dataset.tasks
+
+    def __len__(self) -> int:
+        return len(self.states)
+
+    def __getitem__(self, i: int) -> dict:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} frames")
+        i = i % len(self)
+        wanted = i + self.offsets
+        last = self.last_frame[i]
+        return {
+            "state": self.states[i],
+            "actions": self.actions[torch.clamp(wanted, max=last)],
+            "action_is_pad": wanted > last,
+            "task_index": self.task_index[i],
+        }

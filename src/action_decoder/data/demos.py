@@ -1,0 +1,117 @@
+"""Scripted-expert demonstrations on Meta-World, cached on disk in LeRobot layout.
+
+Only successful episodes are kept. An episode is recorded until ``POST_SUCCESS_STEPS``
+frames after the first success (or Meta-World's 500-step cap): the chunks that start
+near success then hold real actions rather than padding, and the demonstrations stay
+short. Attempt ``k`` uses layout seed ``seed + k`` (see ``envs.demo_seeds``), always
+disjoint from evaluation layouts.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..envs.metaworld_tasks import MAX_EPISODE_STEPS, canonical_task, demo_seeds, expert_policy, make_env, resolve_tasks
+from .episodes import ACTION, STATE, EpisodeDataset, concat_datasets
+from .lerobot_format import load_dataset, write_episodes
+
+POST_SUCCESS_STEPS = 10
+CACHE_ENV_VAR = "ACTION_DECODER_CACHE"
+
+
+def cache_root() -> Path:
+    """``$ACTION_DECODER_CACHE`` if set, else ``~/.cache/action_decoder``."""
+    return Path(os.environ.get(CACHE_ENV_VAR) or "~/.cache/action_decoder").expanduser()
+
+
+def _is_complete(path: Path, num_episodes: int) -> bool:
+    info = path / "meta" / "info.json"
+    return info.exists() and json.loads(info.read_text()).get("total_episodes") == num_episodes
+
+
+def _rollout(env, expert, seed: int) -> dict | None:
+    """One expert episode from layout ``seed``; None if it never succeeds."""
+    obs = env.reset(seed=seed)[0]
+    states, actions, rewards, successes, first_success = [], [], [], [], None
+    while len(actions) < MAX_EPISODE_STEPS:
+        action = expert(obs)
+        states.append(obs.astype(np.float32))
+        actions.append(action)
+        obs, reward, _, _, info = env.step(action)
+        rewards.append(reward)
+        successes.append(bool(info["success"]))
+        if successes[-1] and first_success is None:
+            first_success = len(actions) - 1
+        if first_success is not None and len(actions) > first_success + POST_SUCCESS_STEPS:
+            break
+    if first_success is None:
+        return None
+    return {STATE: np.stack(states), ACTION: np.stack(actions), "task_index": 0,
+            "next.reward": np.asarray(rewards), "next.success": np.asarray(successes), "seed": seed}
+
+
+def generate_demos(
+    task: str,
+    num_episodes: int,
+    seed: int = 0,
+    max_attempts_factor: float = 3.0,
+    cache_dir: str | Path | None = None,
+) -> Path:
+    """Directory holding ``num_episodes`` successful expert episodes of ``task``.
+
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>`` when complete; otherwise writes it
+    into a temporary sibling and renames it into place (concurrent runs never see a
+    partial dataset). Raises RuntimeError if ``ceil(N * max_attempts_factor)`` attempts
+    do not yield N successes.
+    """
+    name = canonical_task(task)
+    if not isinstance(num_episodes, (int, np.integer)) or num_episodes < 1:
+        raise ValueError(f"num_episodes: expected an integer >= 1, got {num_episodes!r}")
+    if not max_attempts_factor >= 1:
+        raise ValueError(f"max_attempts_factor: expected a number >= 1, got {max_attempts_factor!r}")
+    final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}"
+    if _is_complete(final, num_episodes):
+        return final
+
+    seeds = demo_seeds(seed, math.ceil(num_episodes * max_attempts_factor))
+    env, expert, episodes = make_env(name, seed), expert_policy(name), []
+    for attempt, layout_seed in enumerate(seeds, start=1):
+        episode = _rollout(env, expert, layout_seed)
+        if episode is not None:
+            episodes.append(episode)
+        if len(episodes) == num_episodes:
+            break
+    env.close()
+    if len(episodes) < num_episodes:
+        raise RuntimeError(
+            f"{name}: the scripted expert succeeded in {len(episodes)} of {len(seeds)} attempts, fewer than "
+            f"the {num_episodes} demonstrations asked for; raise max_attempts_factor"
+        )
+
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
+              "seed": seed, "attempts": attempt, "expert_success_rate": num_episodes / attempt,
+              "post_success_steps": POST_SUCCESS_STEPS}
+    write_episodes(tmp, episodes, [name], round(1.0 / env.unwrapped.dt, 6), {"robot_type": "sawyer", "source": source})
+    if final.exists() and not _is_complete(final, num_episodes):
+        shutil.rmtree(final)  # a stale partial cache entry
+    try:
+        os.rename(tmp, final)
+    except OSError:  # another process finished the same dataset first
+        shutil.rmtree(tmp)
+    return final
+
+
+def load_demos(spec: str, num_episodes: int, seed: int = 0) -> EpisodeDataset:
+    """Expert demonstrations of every task in ``spec`` (generated or cached), concatenated;
+    ``task_index`` follows the order of ``resolve_tasks(spec)``."""
+    return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed)) for t in resolve_tasks(spec)])

@@ -1,0 +1,104 @@
+"""In-memory episodes of (state, action, task) frames: the one form every dataset takes.
+
+Subsets and concatenations recompute the normalisation statistics, so a policy trained on
+the first k demonstrations never sees statistics of the held-back ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .stats import compute_stats
+
+STATE, ACTION = "observation.state", "action"
+
+
+@dataclass
+class EpisodeDataset:
+    """Frames ``states [N, S]``, ``actions [N, D]``, ``task_index [N]`` stored episode after
+    episode; episode ``e`` spans ``episode_starts[e] : episode_starts[e] + episode_lengths[e]``."""
+
+    states: np.ndarray
+    actions: np.ndarray
+    task_index: np.ndarray
+    episode_lengths: np.ndarray
+    tasks: list[str]
+    fps: float | None
+    episode_ids: np.ndarray | None = None
+    root: Path | None = None
+    stats: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.states = np.ascontiguousarray(self.states, dtype=np.float32)
+        self.actions = np.ascontiguousarray(self.actions, dtype=np.float32)
+        self.task_index = np.asarray(self.task_index, dtype=np.int64)
+        self.episode_lengths = np.asarray(self.episode_lengths, dtype=np.int64)
+        n = int(self.episode_lengths.sum())
+        for name, arr, ndim in (("states", self.states, 2), ("actions", self.actions, 2), ("task_index", self.task_index, 1)):
+            if arr.ndim != ndim or len(arr) != n:
+                raise ValueError(
+                    f"EpisodeDataset.{name}: expected {n} frames (sum of episode_lengths) with {ndim} dims, got shape {arr.shape}"
+                )
+        if (self.episode_lengths < 1).any():
+            raise ValueError(
+                f"EpisodeDataset.episode_lengths: expected every episode to have >= 1 frame, got {self.episode_lengths.tolist()}"
+            )
+        if n and not 0 <= self.task_index.min() <= self.task_index.max() < len(self.tasks):
+            raise ValueError(
+                f"EpisodeDataset.task_index: expected values in [0, {len(self.tasks)}) (one per task), "
+                f"got [{self.task_index.min()}, {self.task_index.max()}]"
+            )
+        if self.episode_ids is None:
+            self.episode_ids = np.arange(len(self.episode_lengths))
+        if not self.stats:
+            self.stats = compute_stats({STATE: self.states, ACTION: self.actions})
+
+    @property
+    def episode_starts(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(self.episode_lengths)[:-1]]).astype(np.int64)
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.episode_lengths)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.states)
+
+    def select(self, episodes: int | Sequence[int]) -> "EpisodeDataset":
+        """The first ``episodes`` episodes (an int), or those at the given positions."""
+        picks = np.arange(episodes) if isinstance(episodes, (int, np.integer)) else np.asarray(episodes, dtype=np.int64)
+        if picks.ndim != 1 or len(picks) == 0 or picks.min() < 0 or picks.max() >= self.num_episodes:
+            raise ValueError(
+                f"episodes: expected a count in [1, {self.num_episodes}] or positions in [0, {self.num_episodes}), got {episodes!r}"
+            )
+        starts = self.episode_starts
+        frames = np.concatenate([np.arange(starts[e], starts[e] + self.episode_lengths[e]) for e in picks])
+        return EpisodeDataset(
+            self.states[frames], self.actions[frames], self.task_index[frames], self.episode_lengths[picks],
+            list(self.tasks), self.fps, self.episode_ids[picks], self.root,
+        )
+
+
+def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
+    """One multi-task dataset: task lists are merged by name and ``task_index`` remapped."""
+    if not datasets:
+        raise ValueError("concat_datasets: expected at least one EpisodeDataset, got none")
+    widths = {(d.states.shape[1], d.actions.shape[1]) for d in datasets}
+    fps = {d.fps for d in datasets}
+    if len(widths) > 1 or len(fps) > 1:
+        raise ValueError(f"concat_datasets: expected equal (state dim, action dim) and fps, got {sorted(widths)} and {list(fps)}")
+    tasks = list(dict.fromkeys(t for d in datasets for t in d.tasks))
+    remapped = [np.asarray([tasks.index(t) for t in d.tasks], dtype=np.int64)[d.task_index] for d in datasets]
+    return EpisodeDataset(
+        np.concatenate([d.states for d in datasets]),
+        np.concatenate([d.actions for d in datasets]),
+        np.concatenate(remapped),
+        np.concatenate([d.episode_lengths for d in datasets]),
+        tasks,
+        fps.pop(),
+    )

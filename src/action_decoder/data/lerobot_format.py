@@ -1,0 +1,158 @@
+"""Reading and writing datasets in LeRobot's on-disk layout (v2.0 style):
+
+    <root>/data/chunk-000/episode_000000.parquet   one file per episode
+    <root>/meta/info.json                          fps, features and shapes, totals
+    <root>/meta/tasks.jsonl                        {"task_index", "task"} per line
+    <root>/meta/episodes.jsonl                     {"episode_index", "tasks", "length", ...}
+    <root>/meta/stats.json                         mean/std/min/max per feature
+
+Reading takes any parquet files under ``data/`` (so users' own recordings load too) and
+needs only ``observation.state``, ``action``, ``episode_index`` and ``frame_index``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from .episodes import ACTION, STATE, EpisodeDataset
+from .stats import compute_stats, load_stats, save_stats
+
+REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
+CHUNK_SIZE = 1000
+DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+SCALARS = {"episode_index": "int64", "frame_index": "int64", "timestamp": "float32", "index": "int64",
+           "task_index": "int64", "next.reward": "float32", "next.success": "bool", "next.done": "bool"}
+
+
+def _fixed_lists(values: np.ndarray) -> pa.FixedSizeListArray:
+    values = np.asarray(values, dtype=np.float32)
+    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+
+
+def write_episodes(
+    root: str | Path,
+    episodes: Sequence[dict[str, np.ndarray]],
+    tasks: Sequence[str],
+    fps: float,
+    info_extra: dict | None = None,
+) -> Path:
+    """Write episodes (dicts with ``observation.state [L, S]``, ``action [L, D]``,
+    ``task_index`` (int), ``next.reward [L]``, ``next.success [L]``, optional ``seed``) under ``root``."""
+    root = Path(root)
+    (root / "meta").mkdir(parents=True, exist_ok=True)
+    index = 0
+    for e, ep in enumerate(episodes):
+        length = len(ep[ACTION])
+        columns = {
+            **{k: _fixed_lists(ep[k]) for k in (STATE, ACTION)},
+            "episode_index": np.full(length, e), "frame_index": np.arange(length),
+            "timestamp": np.arange(length, dtype=np.float32) / np.float32(fps),
+            "index": np.arange(index, index + length), "task_index": np.full(length, int(ep["task_index"])),
+            "next.reward": np.asarray(ep["next.reward"], np.float32),
+            "next.success": np.asarray(ep["next.success"], bool), "next.done": np.arange(length) == length - 1,
+        }
+        path = root / DATA_PATH.format(episode_chunk=e // CHUNK_SIZE, episode_index=e)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.table(columns), path)
+        index += length
+
+    state_dim, action_dim = episodes[0][STATE].shape[1], episodes[0][ACTION].shape[1]
+    features = {
+        STATE: {"dtype": "float32", "shape": [state_dim], "names": None},
+        ACTION: {"dtype": "float32", "shape": [action_dim], "names": None},
+        **{k: {"dtype": v, "shape": [1], "names": None} for k, v in SCALARS.items()},
+    }
+    info = {
+        "codebase_version": "v2.0", "fps": fps, "total_episodes": len(episodes), "total_frames": index,
+        "total_tasks": len(tasks), "total_chunks": (len(episodes) - 1) // CHUNK_SIZE + 1, "chunks_size": CHUNK_SIZE,
+        "splits": {"train": f"0:{len(episodes)}"}, "data_path": DATA_PATH, "video_path": None,
+        "features": features, **(info_extra or {}),
+    }
+    episode_lines = [
+        {"episode_index": e, "tasks": [tasks[int(ep["task_index"])]], "length": len(ep[ACTION]),
+         **({"seed": int(ep["seed"])} if "seed" in ep else {})}
+        for e, ep in enumerate(episodes)
+    ]
+    (root / "meta" / "tasks.jsonl").write_text("".join(json.dumps({"task_index": i, "task": t}) + "\n" for i, t in enumerate(tasks)))
+    (root / "meta" / "episodes.jsonl").write_text("".join(json.dumps(line) + "\n" for line in episode_lines))
+    stats = compute_stats({STATE: np.concatenate([ep[STATE] for ep in episodes]),
+                           ACTION: np.concatenate([ep[ACTION] for ep in episodes])})
+    save_stats(stats, root / "meta" / "stats.json")
+    (root / "meta" / "info.json").write_text(json.dumps(info, indent=2))  # last: marks the dataset complete
+    return root
+
+
+def _matrix(table: pa.Table, name: str, path: Path) -> np.ndarray:
+    column = table[name].combine_chunks()
+    if not (pa.types.is_list(column.type) or pa.types.is_large_list(column.type) or pa.types.is_fixed_size_list(column.type)):
+        raise ValueError(f"{path}: column {name!r} expected a list of floats per frame, got type {column.type}")
+    widths = pc.list_value_length(column).to_numpy(zero_copy_only=False)
+    if column.null_count or len(set(widths.tolist())) > 1:
+        raise ValueError(
+            f"{path}: column {name!r} expected the same number of values in every frame, "
+            f"got lengths {sorted(set(widths.tolist()))} and {column.null_count} nulls"
+        )
+    return column.flatten().to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(column), -1)
+
+
+def _read_tasks(root: Path, count: int) -> list[str]:
+    path = root / "meta" / "tasks.jsonl"
+    if not path.exists():
+        return [f"task_{i}" for i in range(count)]
+    entries = sorted((int(d["task_index"]), str(d["task"])) for d in map(json.loads, path.read_text().splitlines()) if d)
+    if [i for i, _ in entries] != list(range(len(entries))) or len(entries) < count:
+        raise ValueError(f"{path}: expected task_index 0..{count - 1} each once, got {[i for i, _ in entries]}")
+    return [t for _, t in entries]
+
+
+def load_dataset(root: str | Path) -> EpisodeDataset:
+    """Load a dataset in LeRobot layout, validating columns, frame order and finiteness.
+
+    ``task_index`` defaults to 0 when the column is absent; statistics come from
+    ``meta/stats.json`` when present (std floored), otherwise they are computed.
+    """
+    root = Path(root).expanduser()
+    files = sorted((root / "data").rglob("*.parquet"))
+    if not files:
+        raise ValueError(f"load_dataset: expected parquet files under {root / 'data'}, found none")
+    tables = []
+    for path in files:
+        table = pq.read_table(path)
+        missing = [c for c in REQUIRED_COLUMNS if c not in table.column_names]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {table.column_names}")
+        states, actions = _matrix(table, STATE, path), _matrix(table, ACTION, path)
+        task = table["task_index"].to_numpy() if "task_index" in table.column_names else np.zeros(len(table), np.int64)
+        tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task))
+    widths = sorted({(s.shape[1], a.shape[1]) for s, a, *_ in tables})
+    if len(widths) > 1:
+        raise ValueError(f"{root}: expected the same (state, action) widths in every file, got {widths}")
+    states, actions, episode, frame, task = (np.concatenate(parts) for parts in zip(*tables))
+
+    order = np.lexsort((frame, episode))
+    states, actions, episode, frame, task = states[order], actions[order], episode[order], frame[order], task[order]
+    ids, starts, lengths = np.unique(episode, return_index=True, return_counts=True)
+    for i, start, length in zip(ids, starts, lengths):
+        if not np.array_equal(frame[start:start + length], np.arange(length)):
+            raise ValueError(
+                f"{root}: episode {i} expected frame_index 0..{length - 1} each once, got {frame[start:start + length][:10].tolist()}..."
+            )
+    for name, values in ((STATE, states), (ACTION, actions)):
+        bad = ~np.isfinite(values).all(axis=1)
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise ValueError(f"{root}: column {name!r} has NaN/Inf values in episode {episode[row]} (frame {frame[row]})")
+
+    info_path = root / "meta" / "info.json"
+    fps = json.loads(info_path.read_text()).get("fps") if info_path.exists() else None
+    tasks = _read_tasks(root, int(task.max()) + 1)
+    stats_path = root / "meta" / "stats.json"
+    stats = load_stats(stats_path, {STATE: states.shape[1], ACTION: actions.shape[1]}) if stats_path.exists() else {}
+    return EpisodeDataset(states, actions, task, lengths, tasks, fps, ids, root, stats)

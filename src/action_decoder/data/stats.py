@@ -1,0 +1,55 @@
+"""Normalisation statistics (LeRobot's ``meta/stats.json`` form: mean, std, min, max, count).
+
+The std is floored: Meta-World states have constant dimensions (std 0), and dividing by
+a zero std would turn them into NaN or huge values.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+STD_FLOOR = 1e-2
+STAT_KEYS = ("mean", "std", "min", "max")
+
+
+def compute_stats(features: Mapping[str, np.ndarray], std_floor: float = STD_FLOOR) -> dict[str, dict]:
+    """Per-dimension mean/std/min/max of each ``[N, dim]`` feature, std floored at ``std_floor``."""
+    stats = {}
+    for name, values in features.items():
+        values = np.asarray(values, dtype=np.float64)
+        if values.ndim != 2 or len(values) == 0:
+            raise ValueError(f"compute_stats: feature {name!r} must be a non-empty [N, dim] array, got shape {values.shape}")
+        stats[name] = {
+            "mean": values.mean(0).astype(np.float32),
+            "std": np.maximum(values.std(0), std_floor).astype(np.float32),
+            "min": values.min(0).astype(np.float32),
+            "max": values.max(0).astype(np.float32),
+            "count": int(len(values)),
+        }
+    return stats
+
+
+def save_stats(stats: Mapping[str, Mapping], path: str | Path) -> None:
+    """Write statistics as JSON lists."""
+    out = {name: {k: np.asarray(v).tolist() if k in STAT_KEYS else v for k, v in s.items()} for name, s in stats.items()}
+    Path(path).write_text(json.dumps(out, indent=2))
+
+
+def load_stats(path: str | Path, dims: Mapping[str, int], std_floor: float = STD_FLOOR) -> dict[str, dict]:
+    """Read statistics for the features in ``dims`` (name -> width), flooring the std."""
+    raw = json.loads(Path(path).read_text())
+    stats = {}
+    for name, dim in dims.items():
+        if name not in raw or any(k not in raw[name] for k in STAT_KEYS):
+            raise ValueError(f"{path}: expected {name!r} with keys {list(STAT_KEYS)}, got {sorted(raw.get(name, raw))}")
+        entry = {k: np.asarray(raw[name][k], dtype=np.float32).reshape(-1) for k in STAT_KEYS}
+        for k, v in entry.items():
+            if v.shape != (dim,):
+                raise ValueError(f"{path}: {name}.{k} expected {dim} values, got {v.shape[0]}")
+        entry["std"] = np.maximum(entry["std"], std_floor)
+        stats[name] = {**entry, "count": raw[name].get("count")}
+    return stats
