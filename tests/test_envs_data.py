@@ -163,7 +163,7 @@ def test_evaluate_expert_and_zero_policy():
     expert = expert_policy("metaworld/reach")
     done = []
     result = evaluate(lambda s, t: expert(s)[:, None], "metaworld/reach", episodes=2, seed=0,
-                      n_action_steps=1, progress=lambda i, n: done.append(i))
+                      n_action_steps=1, progress=lambda i, n, ep, ok: done.append(i))
     assert result["success_rate"] == 1.0 and done == [1, 2]
     assert result["seeds"] == eval_seeds(0, 2) and max(result["lengths"]) < 500
     zero = evaluate(lambda s, t: np.zeros((len(s), 8, 4)), "metaworld/reach", episodes=2, n_action_steps=8, max_steps=100)

@@ -51,13 +51,15 @@ def evaluate(
     max_steps: int = 500,
     num_envs: int = 10,
     task_index: int = 0,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[int, int, int, bool], None] | None = None,
+    record: bool = False,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
 
-    ``task_index`` is passed to ``policy_fn`` (multi-task policies); ``progress(done, total)``
-    is called after each finished episode. Returns ``task``, ``success_rate``, and per
+    ``task_index`` is passed to ``policy_fn`` (multi-task policies); ``progress(done, total, episode, success)``
+    is called after each finished episode. ``record=True`` adds ``trajectories``: per episode the
+    hand positions ``[T, 3]`` (obs[0:3]) and the goal (obs[36:39]). Returns ``task``, ``success_rate``, and per
     episode ``successes``, ``lengths``, ``returns``, ``seeds``, plus ``env_steps`` and
     ``wall_time_s``.
     """
@@ -71,6 +73,8 @@ def evaluate(
 
     seeds = eval_seeds(seed, episodes)
     successes, lengths, returns = [False] * episodes, [0] * episodes, [0.0] * episodes
+    hands: list[list[np.ndarray]] = [[] for _ in range(episodes)]
+    goals: list[np.ndarray | None] = [None] * episodes
     obs = np.zeros((len(envs), envs[0].observation_space.shape[0]), dtype=np.float32)
     slot_episode = [-1] * len(envs)
     plans: list[np.ndarray | None] = [None] * len(envs)
@@ -81,6 +85,9 @@ def evaluate(
         slot_episode[slot], plans[slot] = -1, None
         if next_episode < episodes:
             obs[slot] = envs[slot].reset(seed=seeds[next_episode])[0]
+            if record:
+                hands[next_episode].append(obs[slot][:3].copy())
+                goals[next_episode] = obs[slot][36:39].copy()
             slot_episode[slot], next_episode = next_episode, next_episode + 1
 
     for slot in range(len(envs)):
@@ -95,15 +102,20 @@ def evaluate(
             ep, action, plans[s] = slot_episode[s], plans[s][0], plans[s][1:]
             obs[s], reward, _, _, info = envs[s].step(action)
             lengths[ep] += 1
+            if record:
+                hands[ep].append(obs[s][:3].copy())
             returns[ep] += float(reward)
             successes[ep] = bool(info["success"])
             if successes[ep] or lengths[ep] >= max_steps:
                 finished += 1
                 if progress is not None:
-                    progress(finished, episodes)
+                    progress(finished, episodes, ep, successes[ep])
                 begin(s)
     _idle_envs.setdefault(name, []).extend(envs)
+    extra = {"trajectories": [{"hand": np.stack(h).tolist(), "goal": g.tolist()} for h, g in zip(hands, goals)]} \
+        if record else {}
     return {
+        **extra,
         "task": name,
         "success_rate": float(np.mean(successes)),
         "successes": successes,

@@ -1,0 +1,303 @@
+"""Behaviour-cloning training: demonstrations → `ActionDecoderPolicy`, resumable, data-parallel.
+
+Runs as is, under `torchrun --nproc_per_node N` or under `accelerate launch` (both set
+RANK/WORLD_SIZE; DDP underneath: gloo on CPU, NCCL on GPUs). The loss — MeanFlow's JVP
+included — is computed inside the DDP wrapper's forward, so gradients are all-reduced.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+from torch.utils.data import default_collate
+
+from .config import DecoderConfig
+from .policy import ActionDecoderPolicy
+
+CKPT_DIR, LAST, FINAL = "checkpoints", "last", "final"
+
+
+@dataclass
+class TrainConfig:
+    """Train a decoder on Meta-World demonstrations (or any LeRobot-layout dataset), then evaluate."""
+
+    task: str = "metaworld/button-press-topdown"
+    """Meta-World task(s): a name, a comma-separated list, or a group (MT10, medium, hard, very_hard)."""
+    dataset: Optional[str] = None
+    """Train on this LeRobot-layout dataset directory instead of generating demonstrations."""
+    decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "mean_flow"
+    steps: int = 2000
+    """Optimizer steps."""
+    demos: int = 10
+    """Expert demonstrations per task."""
+    output_dir: str = "outputs/train"
+    seed: int = 0
+    """Seeds the demonstration layouts, the network and the data order."""
+    batch_size: int = 128
+    """Global batch size (split across processes)."""
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 100
+    grad_clip: float = 1.0
+    horizon: int = 16
+    """Action chunk length H."""
+    n_action_steps: int = 8
+    """Actions executed from each chunk before re-planning."""
+    inference_steps: int = 0
+    """Sampling steps K (0: the decoder's default: DDPM 10, flow matching 10, MeanFlow 1)."""
+    hidden_size: int = 96
+    num_layers: int = 3
+    num_heads: int = 4
+    num_kv_heads: int = 2
+    prediction_type: Literal["epsilon", "sample"] = "sample"
+    """DDPM's target."""
+    meanflow_ratio_r_neq_t: float = 0.5
+    """MeanFlow: fraction of (t, r) pairs with r ≠ t."""
+    meanflow_adaptive_p: float = 1.0
+    """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
+    checkpoint_every: int = 500
+    log_every: int = 25
+    resume: bool = False
+    """Continue from the last checkpoint in output_dir (same optimizer and RNG state)."""
+    eval_episodes: int = 20
+    """Closed-loop episodes after training (0: skip)."""
+    device: str = "auto"
+    progress: bool = True
+
+
+DEFAULT_STEPS = {"DDPM": 10, "flow_matching": 10, "mean_flow": 1}
+
+
+# ---------------------------------------------------------------------- distributed
+def _dist_env() -> tuple[int, int, int]:
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+
+
+def _device(name: str, local_rank: int) -> torch.device:
+    if name == "auto":
+        return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+    return torch.device(name)
+
+
+# ---------------------------------------------------------------------- data
+def load_training_data(cfg: TrainConfig, quiet: bool = False):
+    """(ChunkDataset, task names) from `--dataset` or generated Meta-World demonstrations."""
+    from .data import ChunkDataset, load_dataset, load_demos
+
+    if cfg.dataset is not None:
+        episodes = load_dataset(cfg.dataset)
+    else:
+        if not quiet:
+            print(f"demonstrations: {cfg.demos} per task of {cfg.task} (cached after the first run)", flush=True)
+        episodes = load_demos(cfg.task, cfg.demos, cfg.seed)
+    return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks)
+
+
+def task_context(task_index: torch.Tensor, num_tasks: int) -> dict:
+    """Multi-task conditioning through the context path: one one-hot token per sample."""
+    if num_tasks <= 1:
+        return {}
+    onehot = torch.nn.functional.one_hot(task_index.long(), num_tasks).float()
+    return {"context": onehot[:, None, :]}                                 # [B, 1, num_tasks]
+
+
+def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: list[str]) -> DecoderConfig:
+    k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
+    return DecoderConfig(
+        decoder_type=cfg.decoder, prediction_type=cfg.prediction_type, num_inference_timesteps=k,
+        action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, state_dim=state_dim,
+        action_dim=action_dim, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
+        num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
+        context_dim=len(tasks) if len(tasks) > 1 else None,
+        meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
+        extra={"tasks": tasks, "train": asdict(cfg)})
+
+
+def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device) -> dict:
+    items = default_collate([ds[int(i)] for i in idx])
+    batch = {"state": items["state"].to(device), "actions": items["actions"].to(device)}
+    batch.update({k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()})
+    return batch
+
+
+# ---------------------------------------------------------------------- checkpoints
+def _rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen: torch.Generator,
+                    loss_gen: torch.Generator, history: list) -> Path:
+    """Write `checkpoints/step_N` through a temporary directory and a rename, then point
+    `checkpoints/last` at it (also atomically): a crash leaves the previous one intact."""
+    root = out / CKPT_DIR
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / f"step_{step:07d}"
+    tmp = root / f".tmp_step_{step:07d}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    torch.save({"step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
+                "history": history}, tmp / "training_state.pt")
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    pointer = root / (LAST + ".tmp")
+    pointer.write_text(final.name)
+    os.replace(pointer, root / LAST)
+    for old in sorted(root.glob("step_*"))[:-2]:   # keep the last two
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def last_checkpoint(out: Path) -> Optional[Path]:
+    pointer = out / CKPT_DIR / LAST
+    if not pointer.is_file():
+        return None
+    path = out / CKPT_DIR / pointer.read_text().strip()
+    return path if (path / "training_state.pt").is_file() else None
+
+
+# ---------------------------------------------------------------------- plots and logs
+def plot_losses(history: list, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(steps, [h["loss"] for h in history])
+    ax.set(xlabel="step", ylabel="training loss", title=title, yscale="log")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------- the loop
+def _check(cfg: TrainConfig) -> None:
+    for name in ("steps", "demos", "batch_size", "horizon", "n_action_steps", "checkpoint_every", "log_every"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
+    if cfg.eval_episodes < 0 or cfg.inference_steps < 0:
+        raise ValueError("--eval-episodes/--inference-steps: expected >= 0")
+    if cfg.lr <= 0:
+        raise ValueError(f"--lr: expected a positive learning rate, got {cfg.lr}")
+
+
+def train(cfg: TrainConfig) -> Path:
+    """Train; returns the directory of the final `save_pretrained` checkpoint."""
+    _check(cfg)
+    rank, world, local_rank = _dist_env()
+    if world > 1 and not torch.distributed.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() and cfg.device != "cpu" else "gloo"
+        torch.distributed.init_process_group(backend)
+    if cfg.batch_size % world:
+        raise ValueError(f"--batch-size: expected a multiple of the {world} processes, got {cfg.batch_size}")
+    device = _device(cfg.device, local_rank)
+    out = Path(cfg.output_dir)
+    main = rank == 0
+
+    ds, tasks = load_training_data(cfg, quiet=not main)
+    dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
+    torch.manual_seed(cfg.seed)
+    policy = ActionDecoderPolicy(dconf, ds.stats).to(device)
+    optimizer = torch.optim.AdamW([p for p in policy.parameters() if p.requires_grad], lr=cfg.lr,
+                                  weight_decay=cfg.weight_decay)
+    warm = max(cfg.warmup_steps, 1)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: min(1.0, (s + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps)))
+    # Rank-specific streams: each process draws its own rows and its own noise.
+    data_gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank)
+    loss_gen = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + 500 + rank)
+    start, history = 0, []
+
+    if cfg.resume:
+        ckpt = last_checkpoint(out)
+        if ckpt is None:
+            if main:
+                print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from step 0", flush=True)
+        else:
+            loaded = ActionDecoderPolicy.from_pretrained(ckpt, map_location=device)
+            policy.load_state_dict(loaded.state_dict())
+            state = torch.load(ckpt / "training_state.pt", map_location="cpu", weights_only=False)
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
+            data_gen.set_state(state["data_gen"])
+            loss_gen.set_state(state["loss_gen"].to(loss_gen.get_state().device))
+            _set_rng_state(state["rng"])
+            start, history = state["step"], state["history"]
+            if main:
+                print(f"resume: continuing from {ckpt} (step {start})", flush=True)
+    elif main and last_checkpoint(out) is not None:
+        raise ValueError(f"--output-dir: {out} already holds a training run; pass --resume to continue it "
+                         f"or choose another directory")
+
+    model = policy
+    if world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(
+            policy, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
+    local_batch = cfg.batch_size // world
+    bar = None
+    if main and cfg.progress:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.decoder}", dynamic_ncols=True,
+                   file=sys.stdout)
+    policy.train()
+    t0, running = time.perf_counter(), []
+    for step in range(start, cfg.steps):
+        idx = torch.randint(len(ds), (local_batch,), generator=data_gen)
+        batch = _batch(ds, idx, len(tasks), device)
+        loss = model(batch, generator=loss_gen).loss
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        running.append(loss.detach())
+        done = step + 1
+        if done % cfg.log_every == 0 or done == cfg.steps:
+            mean_loss = float(torch.stack(running).mean())
+            running = []
+            if not math.isfinite(mean_loss):
+                raise FloatingPointError(f"training loss became {mean_loss} at step {done}; lower --lr "
+                                         f"(now {cfg.lr}) or check the dataset")
+            history.append({"step": done, "loss": mean_loss, "lr": scheduler.get_last_lr()[0]})
+            if bar is not None:
+                bar.set_postfix(loss=f"{mean_loss:.4f}", steps_per_s=f"{(done - start) / (time.perf_counter() - t0):.1f}")
+        if bar is not None:
+            bar.update(1)
+        if main and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
+            save_checkpoint(out, done, policy, optimizer, scheduler, data_gen, loss_gen, history)
+    if bar is not None:
+        bar.close()
+    final = out / FINAL
+    if main:
+        tmp = out / ".tmp_final"
+        shutil.rmtree(tmp, ignore_errors=True)
+        policy.save_pretrained(tmp)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
+        if history:
+            plot_losses(history, out / "loss.png", f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")
+        print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training)", flush=True)
+    if world > 1:
+        torch.distributed.barrier()
+    return final
