@@ -1,4 +1,4 @@
-"""`action-decoder` console script: train, eval (every option from a dataclass, via tyro)."""
+"""`action-decoder` console script: train, eval, finetune (every option from a dataclass, via tyro)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,12 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     from .evaluate import EvalConfig, run_eval
+    from .rl import FinetuneConfig, finetune
     from .train import TrainConfig, train
 
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
-    commands = {"train": TrainConfig, "eval": EvalConfig}
+    commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
         if isinstance(cfg, TrainConfig):
@@ -27,6 +28,8 @@ def main(argv: list[str] | None = None) -> int:
             if cfg.eval_episodes and rank == 0:
                 run_eval(EvalConfig(checkpoint=str(final), episodes=cfg.eval_episodes, seed=cfg.seed,
                                     device="cpu"))
+        elif isinstance(cfg, FinetuneConfig):
+            finetune(cfg)
         else:
             run_eval(cfg)
     except (ValueError, FileNotFoundError, FloatingPointError) as err:

@@ -51,7 +51,7 @@ class DecoderConfig:
     meanflow_ratio_r_neq_t: float = 0.5
     meanflow_time_mean: float = 0.4
     meanflow_time_std: float = 1.0
-    meanflow_adaptive_p: float = 1.0
+    meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
     # --- the Action Expert network ---
     state_dim: int = 39

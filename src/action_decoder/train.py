@@ -32,12 +32,12 @@ CKPT_DIR, LAST, FINAL = "checkpoints", "last", "final"
 class TrainConfig:
     """Train a decoder on Meta-World demonstrations (or any LeRobot-layout dataset), then evaluate."""
 
-    task: str = "metaworld/button-press-topdown"
+    task: str = "metaworld/push"
     """Meta-World task(s): a name, a comma-separated list, or a group (MT10, medium, hard, very_hard)."""
     dataset: Optional[str] = None
     """Train on this LeRobot-layout dataset directory instead of generating demonstrations."""
     decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "mean_flow"
-    steps: int = 2000
+    steps: int = 1500
     """Optimizer steps."""
     demos: int = 10
     """Expert demonstrations per task."""
@@ -64,7 +64,7 @@ class TrainConfig:
     """DDPM's target."""
     meanflow_ratio_r_neq_t: float = 0.5
     """MeanFlow: fraction of (t, r) pairs with r ≠ t."""
-    meanflow_adaptive_p: float = 1.0
+    meanflow_adaptive_p: float = 0.5
     """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     checkpoint_every: int = 500
     log_every: int = 25

@@ -81,13 +81,14 @@ def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: fl
 
 def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optional[torch.Generator] = None,
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
-                  time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 1.0,
+                  time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
     weight w = sg(1 / (error + c)^p); loss = mean(w·error). Rows with r = t have target v
-    and are called without JVP (free speed).
+    and are called without JVP (free speed). p = 0.5 is MP1's choice; on Meta-World push
+    (10 demos, 1500 steps, 1-step sampling) p = 0.5 reached 100 % success, p = 1 15 %, p = 0 0 %.
     """
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions

@@ -1,0 +1,342 @@
+"""`action-decoder finetune`: RL fine-tuning of a BC flow checkpoint through its SDE sampler.
+
+One iteration = one episode on each of `num_envs` lockstep envs (layouts seeded from the
+iteration number, below the evaluation seeds), then PPO epochs on the stored chains or
+SAC steps on a replay buffer. Checkpoints (`checkpoints/step_N`, `checkpoints/last`) are
+written atomically at iteration boundaries with the critic, optimisers, generators and
+history, so `--resume` continues exactly. The result (`final/`) is a `save_pretrained`
+directory that `action-decoder eval` reads; it samples with the fine-tuned SDE by default.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+
+from ..evaluate import make_policy_fn
+from ..policy import ActionDecoderPolicy
+from ..train import CKPT_DIR, FINAL, LAST, _rng_state, _set_rng_state, last_checkpoint, task_context
+from .critics import TwinQ, ValueNet
+from .ppo import gae, k3_kl, ppo_update
+from .rollout import collect
+from .sac import ReplayBuffer, make_target, sac_update
+from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
+
+TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN = 500_000, 400_000
+"""Training layouts: seeds in [500 000, 900 000), apart from demonstrations (low seeds) and
+evaluation (≥ 1 000 000)."""
+
+
+@dataclass
+class FinetuneConfig:
+    """Fine-tune a flow-matching or MeanFlow BC checkpoint with RL on its Meta-World task."""
+
+    checkpoint: str
+    """A `save_pretrained` directory of a flow_matching or mean_flow policy (e.g. outputs/train/final)."""
+    output_dir: str = "outputs/finetune"
+    algo: Literal["ppo", "sac"] = "ppo"
+    task: Optional[str] = None
+    """Task to fine-tune on (default: the checkpoint's task; required for multi-task checkpoints)."""
+    env_steps: int = 100_000
+    """Environment steps to collect (the run stops at the first iteration boundary past it)."""
+    num_envs: int = 8
+    """Lockstep envs; each iteration runs one episode on each."""
+    max_episode_steps: int = 500
+    """Episode cap in env steps (Meta-World's is 500)."""
+    seed: int = 0
+    sde_steps: int = 10
+    """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
+    sigma: float = 0.5
+    """Scale a of the exploring schedule σ(t) = a·√((1 − t)/max(t, 0.1))."""
+    learn_sigma: bool = True
+    """Learn a multiplier of σ(t) (starts at 1)."""
+    lr: float = 3e-5
+    """Velocity network learning rate."""
+    sigma_lr: float = 3e-3
+    critic_lr: float = 1e-3
+    gamma: float = 0.99
+    """Discount per decision (one chunk)."""
+    gae_lambda: float = 0.95
+    success_reward: float = 1.0
+    """Reward on the decision that reaches success (the episode ends there)."""
+    dense_reward_scale: float = 0.0
+    """Weight of the env's dense reward summed over a decision's steps (0: success only)."""
+    logprob_reduce: Literal["sum", "mean"] = "sum"
+    """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
+    skip_last_steps: int = 1
+    """Denoising steps at the end of the chain left out of the PPO/KL objective (their density is huge)."""
+    clip_eps: float = 0.2
+    ppo_epochs: int = 4
+    minibatch_size: int = 128
+    target_kl: float = 0.05
+    """PPO: stop an iteration's epochs when the approximate KL to the rollout policy exceeds 1.5×this."""
+    vf_coef: float = 0.5
+    kl_coef: float = 0.0
+    """Weight of KL(π_θ ‖ π_BC) on the chains (0: off; the KL is still logged)."""
+    critic_warmup_iters: int = 1
+    """PPO: first iterations train only the value head."""
+    ratio_tol: float = 1e-4
+    """PPO: tolerated |ratio − 1| before the first update of an iteration."""
+    alpha: float = 0.01
+    """SAC: entropy weight (log-probs per action dimension)."""
+    tau: float = 0.005
+    sac_batch_size: int = 128
+    sac_updates_per_decision: float = 0.5
+    buffer_size: int = 100_000
+    grad_clip: float = 1.0
+    eval_episodes: int = 20
+    """Closed-loop evaluation episodes (eval layouts) before, every `eval_every` iterations, and after (0: none)."""
+    eval_every: int = 0
+    checkpoint_every: int = 5
+    """Iterations between resumable checkpoints."""
+    resume: bool = False
+
+
+def _check(cfg: FinetuneConfig) -> None:
+    for name in ("env_steps", "num_envs", "max_episode_steps", "sde_steps", "ppo_epochs", "minibatch_size",
+                 "sac_batch_size", "buffer_size", "checkpoint_every"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
+    for name in ("sigma", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip"):
+        if not getattr(cfg, name) > 0:
+            raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
+    for name in ("kl_coef", "alpha", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
+                 "skip_last_steps", "dense_reward_scale", "sac_updates_per_decision"):
+        if getattr(cfg, name) < 0:
+            raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
+    if cfg.max_episode_steps > 500:
+        raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
+    if cfg.skip_last_steps >= cfg.sde_steps:
+        raise ValueError(f"--skip-last-steps: expected fewer than --sde-steps={cfg.sde_steps} so that some "
+                         f"denoising step is trained, got {cfg.skip_last_steps}")
+    if not (0 < cfg.gamma <= 1 and 0 <= cfg.gae_lambda <= 1 and 0 < cfg.tau <= 1):
+        raise ValueError("--gamma/--gae-lambda/--tau: expected gamma, tau in (0, 1] and gae-lambda in [0, 1]")
+
+
+def _resolve_task(cfg: FinetuneConfig, trained: list[str]) -> tuple[str, int]:
+    from ..envs import canonical_task
+
+    if cfg.task is None:
+        if len(trained) != 1:
+            raise ValueError(f"--task: the checkpoint was trained on {trained or 'no named task'}; "
+                             f"pass --task metaworld/<task>")
+        return trained[0], 0
+    task = canonical_task(cfg.task)
+    if len(trained) > 1 and task not in trained:
+        raise ValueError(f"--task: {task} is not among the tasks this policy was trained on: {trained}")
+    return task, trained.index(task) if len(trained) > 1 else 0
+
+
+def _save(out: Path, it: int, policy, state: dict) -> None:
+    """Atomic `checkpoints/step_N` (+ `last` pointer), as train.py does."""
+    root = out / CKPT_DIR
+    root.mkdir(parents=True, exist_ok=True)
+    final, tmp = root / f"step_{it:07d}", root / f".tmp_step_{it:07d}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    torch.save(state, tmp / "training_state.pt")
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    pointer = root / (LAST + ".tmp")
+    pointer.write_text(final.name)
+    os.replace(pointer, root / LAST)
+    for old in sorted(root.glob("step_*"))[:-2]:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [h["env_steps"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
+    axes[0].plot(x, [h["success"] for h in history], alpha=0.4, label="training episodes (SDE)")
+    for sampler, marker in (("sde", "o"), ("ode", "s")):
+        pts = [(e["env_steps"], e[f"success_{sampler}"]) for e in evals]
+        if pts:
+            axes[0].plot(*zip(*pts), marker=marker, label=f"eval ({sampler})")
+    axes[0].set(xlabel="env steps", ylabel="success", ylim=(-0.02, 1.02), title=title)
+    axes[0].legend(fontsize=7)
+    axes[1].plot(x, [h["return"] for h in history])
+    axes[1].set(xlabel="env steps", ylabel="episode return (env reward)")
+    axes[2].plot(x, [h["sigma_mult"] for h in history], label="σ multiplier")
+    axes[2].plot(x, [h["kl_bc"] for h in history], label="KL to BC (per step)")
+    axes[2].set(xlabel="env steps")
+    axes[2].legend(fontsize=7)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, reduce: str, squash: bool):
+    """The rollout's act function: one SDE chain per env; records the chain [K+1, H, D], its
+    grid and per-step log-probs [K] (for PPO) and the executed actions (for SAC's buffer).
+    PPO executes the unnormalised final state as BC does; SAC squashes it into the box."""
+    n_exec = policy.config.n_action_steps
+
+    @torch.no_grad()
+    def act(states: np.ndarray, progress: np.ndarray):
+        res = sample_chain(policy, make_batch(torch.from_numpy(states)), steps, generator, reduce=reduce)
+        if squash:
+            actions = squash_to_box(res.chain[:, -1], policy.normalizers["actions"])[0]
+        else:
+            actions = policy.normalizers["actions"].unnormalize(res.chain[:, -1])
+        return actions.numpy(), {"chain": res.chain, "logp": res.step_log_probs, "actions": actions[:, :n_exec],
+                                 "grid": res.grid.expand(len(states), -1)}
+
+    return act
+
+
+def finetune(cfg: FinetuneConfig) -> Path:
+    """Run the fine-tuning; returns the `final/` checkpoint directory."""
+    from ..envs import evaluate, make_env
+
+    _check(cfg)
+    out = Path(cfg.output_dir)
+    bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
+    trained = list(bc.config.extra.get("tasks") or [])
+    task, task_index = _resolve_task(cfg, trained)
+    num_tasks = max(len(trained), 1)
+    torch.manual_seed(cfg.seed)
+    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, {"finetune": asdict(cfg)})
+    reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps).requires_grad_(False)
+    state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
+    sigma_params = list(policy.sigma.parameters())
+    groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
+    groups += [{"params": sigma_params, "lr": cfg.sigma_lr}] if sigma_params else []
+    buffer = None
+    if cfg.algo == "ppo":
+        critic = ValueNet(state_dim)
+        optimizers = {"main": torch.optim.Adam(groups + [{"params": list(critic.parameters()),
+                                                          "lr": cfg.critic_lr}])}
+    else:
+        critic = TwinQ(state_dim, n_exec * policy.config.action_dim)
+        q_target = make_target(critic)
+        optimizers = {"actor": torch.optim.Adam(groups), "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)}
+        buffer = ReplayBuffer(cfg.buffer_size)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    iteration, env_steps, history, evals = 0, 0, [], []
+
+    if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
+        policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
+        st = torch.load(ckpt / "training_state.pt", map_location="cpu", weights_only=False)
+        critic.load_state_dict(st["critic"])
+        for k, opt in optimizers.items():
+            opt.load_state_dict(st["optimizers"][k])
+        if buffer is not None:
+            q_target.load_state_dict(st["q_target"])
+            buffer.load_state_dict(st["buffer"])
+        gen.set_state(st["gen"])
+        _set_rng_state(st["rng"])
+        iteration, env_steps, history, evals = st["iteration"], st["env_steps"], st["history"], st["evals"]
+        print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps)", flush=True)
+    elif cfg.resume:
+        print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from the BC policy", flush=True)
+    elif last_checkpoint(out) is not None:
+        raise ValueError(f"--output-dir: {out} already holds a fine-tuning run; pass --resume to continue it "
+                         f"or choose another directory")
+
+    def make_batch(states: torch.Tensor) -> dict:
+        ctx = task_context(torch.full((len(states),), task_index), num_tasks)
+        return {"state": states.float(), **ctx}
+
+    def run_eval() -> None:
+        if not cfg.eval_episodes:
+            return
+        row = {"iteration": iteration, "env_steps": env_steps}
+        for sampler in ("sde", "ode"):
+            fn = make_policy_fn(policy, num_tasks, sampler, cfg.sde_steps, torch.Generator().manual_seed(cfg.seed))
+            res = evaluate(fn, task, episodes=cfg.eval_episodes, seed=cfg.seed, n_action_steps=n_exec,
+                           max_steps=cfg.max_episode_steps, num_envs=min(cfg.num_envs, cfg.eval_episodes),
+                           task_index=task_index)
+            row[f"success_{sampler}"] = res["success_rate"]
+        evals.append(row)
+        print(f"eval @ {env_steps} env steps: success sde={row['success_sde']:.3f} ode={row['success_ode']:.3f}",
+              flush=True)
+
+    if not evals:
+        run_eval()
+    envs = [make_env(task, seed=cfg.seed * 1000 + i) for i in range(cfg.num_envs)]
+    trained_steps = cfg.sde_steps - cfg.skip_last_steps
+    t0 = time.perf_counter()
+    while env_steps < cfg.env_steps:
+        seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * cfg.num_envs + i) % TRAIN_LAYOUT_SPAN
+                 for i in range(cfg.num_envs)]
+        policy.eval()
+        act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
+        ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps)
+        rec = ro.records
+        rewards = cfg.success_reward * ro.success.float() + cfg.dense_reward_scale * ro.env_rewards
+        with torch.no_grad():
+            logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
+                                                rec["grid"][0], cfg.logprob_reduce)
+                                  for i in range(0, len(rewards), 512)])
+        kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, :trained_steps].mean())
+        norm = policy.normalizers["state"].normalize
+        if cfg.algo == "ppo":
+            with torch.no_grad():
+                values = critic(norm(ro.states), ro.progress)
+                next_values = critic(norm(ro.next_states), ro.next_progress)
+            adv, ret = gae(rewards, values, next_values, ro.success, ro.last, cfg.gamma, cfg.gae_lambda)
+            data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
+                    "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret}
+            stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
+                               update_policy=iteration >= cfg.critic_warmup_iters)
+        else:
+            buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
+                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.success})
+            stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
+            if buffer.size >= cfg.sac_batch_size:
+                runs = [sac_update(policy, reference, critic, q_target, optimizers["actor"], optimizers["q"], buffer,
+                                   make_batch, cfg, gen) for _ in range(n_updates)]
+                stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+        iteration += 1
+        env_steps += ro.env_steps
+        mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
+        row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
+               "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
+               "decisions": len(rewards), "sigma_mult": mult, "kl_bc": kl_rollout, **stats,
+               "wall_s": time.perf_counter() - t0}
+        if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
+            raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
+        history.append(row)
+        ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
+                f"epochs {row['epochs']}" if "ratio_min" in row else ""
+        print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
+              f"σ×{mult:.3f} kl_bc {kl_rollout:.4f}{ratio}", flush=True)
+        if cfg.eval_every and iteration % cfg.eval_every == 0:
+            run_eval()
+        if iteration % cfg.checkpoint_every == 0 or env_steps >= cfg.env_steps:
+            state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
+                     "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                     "gen": gen.get_state(), "rng": _rng_state()}
+            if buffer is not None:
+                state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict())
+            _save(out, iteration, policy, state)
+    if not evals or evals[-1]["iteration"] != iteration:
+        run_eval()
+    for env in envs:
+        env.close()
+    final, tmp = out / FINAL, out / ".tmp_final"
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
+                                                       "evals": evals}, indent=1))
+    plot_curves(history, evals, out / "finetune.png", f"{cfg.algo} on {task}")
+    print(f"saved {final} ({time.perf_counter() - t0:.0f} s of fine-tuning)", flush=True)
+    return final

@@ -1,0 +1,110 @@
+"""PPO on denoising chains (Flow-GRPO / πRL style).
+
+Each denoising step k of a stored chain is a Gaussian "action" x_{k+1} ~ N(mean_k(x_k), std_k²)
+taken with the chunk's advantage: the ratio is per step, exp(log π_θ(x_{k+1}|x_k) − log π_old),
+clipped per step, and the objective averages over the trained steps. The chain and its
+grid are stored at rollout time and re-scored under the current weights, so before the
+first update of an iteration every ratio is 1 — checked at run time.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .sde_policy import rescore_chain
+
+
+def gae(rewards: Tensor, values: Tensor, next_values: Tensor, terminal: Tensor, last: Tensor,
+        gamma: float, lam: float) -> tuple[Tensor, Tensor]:
+    """Advantages and returns [N] over decisions stored episode by episode in time order.
+
+    `next_values` [N] = V(next state), used only where an episode was truncated (time limit);
+    a terminal (success) decision has no future, a mid-episode one uses the next row's value.
+    """
+    adv = torch.zeros_like(rewards)
+    running = torch.zeros(())
+    for i in range(len(rewards) - 1, -1, -1):
+        if last[i]:
+            nxt = torch.zeros(()) if terminal[i] else next_values[i]
+            running = torch.zeros(())
+        else:
+            nxt = values[i + 1]
+        delta = rewards[i] + gamma * nxt - values[i]
+        running = delta + gamma * lam * running
+        adv[i] = running
+    return adv, adv + values
+
+
+def k3_kl(log_ratio_ref: Tensor) -> Tensor:
+    """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ."""
+    return torch.expm1(log_ratio_ref) - log_ratio_ref
+
+
+def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
+               data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
+    """Clipped-PPO epochs over one iteration's decisions; returns statistics.
+
+    `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
+    logp_old / logp_ref [N, K] (rollout policy / frozen BC policy), adv, ret [N].
+    `update_policy=False` trains only the critic (warm-up).
+    """
+    n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
+    trained = slice(0, K - cfg.skip_last_steps)
+    adv = data["adv"]
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8) if n > 1 else adv
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0}
+    logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
+                            "ratio_max")}
+    first, stop = True, False
+    for epoch in range(cfg.ppo_epochs):
+        perm = torch.randperm(n, generator=generator)
+        for start in range(0, n, cfg.minibatch_size):
+            idx = perm[start:start + cfg.minibatch_size]
+            value = value_net(data["state_norm"][idx], data["progress"][idx])
+            v_loss = (value - data["ret"][idx]).square().mean()
+            loss = cfg.vf_coef * v_loss
+            if update_policy:
+                lp = rescore_chain(policy, make_batch(data["states"][idx]), data["chain"][idx], data["grid"],
+                                   cfg.logprob_reduce)[:, trained]                          # [b, K']
+                log_ratio = lp - data["logp_old"][idx, trained]
+                ratio = log_ratio.exp()
+                if first:
+                    dev = float((ratio.detach() - 1).abs().max())
+                    stats["ratio_dev_before_update"] = dev
+                    if not dev <= cfg.ratio_tol:
+                        raise RuntimeError(f"PPO: on-policy ratio is not 1 before the first update (max |ratio − 1| "
+                                           f"= {dev:.2e} > {cfg.ratio_tol:g}): the stored chain is re-scored with a "
+                                           f"different velocity, σ or grid than the one that sampled it")
+                a = adv[idx, None]
+                pg = -torch.min(ratio * a, ratio.clamp(1 - cfg.clip_eps, 1 + cfg.clip_eps) * a).mean()
+                kl_bc = k3_kl(data["logp_ref"][idx, trained] - lp).mean()
+                loss = loss + pg + cfg.kl_coef * kl_bc
+                with torch.no_grad():
+                    approx_kl = float(k3_kl(-log_ratio).mean())
+                    logs["pg_loss"].append(float(pg))
+                    logs["kl_bc"].append(float(kl_bc))
+                    logs["approx_kl"].append(approx_kl)
+                    logs["clipfrac"].append(float(((ratio - 1).abs() > cfg.clip_eps).float().mean()))
+                    logs["ratio_mean"].append(float(ratio.mean()))
+                    logs["ratio_min"].append(float(ratio.min()))
+                    logs["ratio_max"].append(float(ratio.max()))
+                if approx_kl > 1.5 * cfg.target_kl:    # too far from the rollout policy: stop here
+                    stop = True
+                    break
+            first = False
+            logs["v_loss"].append(float(v_loss.detach()))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            optimizer.step()
+        stats["epochs"] = epoch + 1
+        if stop:
+            break
+    for k, v in logs.items():
+        if v:
+            stats[k] = min(v) if k == "ratio_min" else max(v) if k == "ratio_max" else sum(v) / len(v)
+    return stats

@@ -1,0 +1,81 @@
+"""Chunk-level episodes on lockstep Meta-World envs: one decision = one action chunk.
+
+Each call runs one full episode per env, from layouts given by seeds (so an iteration is
+reproducible and a resumed run re-collects exactly what it would have). A decision
+executes the chunk's first `n_action_steps` actions (clipped to [−1, 1]); its reward is the
+sum of the env rewards over the steps executed, and the episode ends at the first success
+(terminal) or at `max_steps` (truncation: the critic bootstraps there). Rows are returned
+episode by episode, in time order, which is what GAE needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+ActFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, dict]]
+"""act(states [B, S] float32, progress [B] float32) -> (chunks [B, H, D] env units, {name: Tensor [B, ...]})."""
+
+
+@dataclass
+class Rollout:
+    """N decisions of E episodes; `records` holds what the act function stored per decision."""
+
+    states: Tensor          # [N, S] env units
+    next_states: Tensor     # [N, S]
+    progress: Tensor        # [N] env steps done before the decision / max_steps
+    next_progress: Tensor   # [N]
+    env_rewards: Tensor     # [N] sum of env rewards over the executed steps
+    success: Tensor         # [N] bool: success reached during this decision (terminal)
+    last: Tensor            # [N] bool: the episode ended after this decision
+    records: dict           # name -> Tensor [N, ...]
+    episode_returns: list   # [E] env return per episode
+    episode_success: list   # [E] bool
+    episode_lengths: list   # [E] env steps
+    env_steps: int
+
+
+def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_steps: int) -> Rollout:
+    """Run one episode per env (layout `seeds[i]`) with chunks from `act`."""
+    n = len(envs)
+    obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]).astype(np.float32)
+    steps = np.zeros(n, dtype=np.int64)
+    active = list(range(n))
+    rows: list[list[dict]] = [[] for _ in range(n)]
+    returns, wins = [0.0] * n, [False] * n
+    while active:
+        progress = (steps[active] / max_steps).astype(np.float32)
+        chunks, record = act(obs[active], progress)
+        chunks = np.clip(np.asarray(chunks)[:, :n_action_steps], -1.0, 1.0)
+        still = []
+        for j, e in enumerate(active):
+            state, reward, success = obs[e].copy(), 0.0, False
+            for action in chunks[j]:
+                o, r, _, _, info = envs[e].step(action)
+                obs[e], steps[e], reward = o, steps[e] + 1, reward + float(r)
+                success = bool(info["success"])
+                if success or steps[e] >= max_steps:
+                    break
+            returns[e] += reward
+            wins[e] = wins[e] or success
+            last = success or steps[e] >= max_steps
+            rows[e].append({"state": state, "next_state": obs[e].copy(), "progress": progress[j],
+                            "next_progress": steps[e] / max_steps, "reward": reward, "success": success,
+                            "last": last, **{k: v[j] for k, v in record.items()}})
+            if not last:
+                still.append(e)
+        active = still
+    flat = [r for ep in rows for r in ep]
+    keys = [k for k in flat[0] if k not in ("state", "next_state", "progress", "next_progress", "reward",
+                                            "success", "last")]
+    col = lambda k, dt=torch.float32: torch.as_tensor(np.array([r[k] for r in flat]), dtype=dt)  # noqa: E731
+    return Rollout(states=col("state"), next_states=col("next_state"), progress=col("progress"),
+                   next_progress=col("next_progress"), env_rewards=col("reward"),
+                   success=col("success", torch.bool), last=col("last", torch.bool),
+                   records={k: torch.stack([r[k] for r in flat]) for k in keys},
+                   episode_returns=returns, episode_success=wins,
+                   episode_lengths=[int(s) for s in steps], env_steps=int(steps.sum()))

@@ -1,0 +1,112 @@
+"""SAC-style fine-tuning through the SDE chain (design doc §4, "Practical tips").
+
+The actor is the whole reparameterised chain: x_{k+1} = mean_k(x_k) + std_k·ε_k with ε fixed,
+so ∂Q/∂θ flows through every step into the velocity network. The entropy term uses the
+ε-form log-prob, −½|ε|² − log std_k − ½log 2π per element, whose gradient reaches the
+learnable σ only: the Q-term moves the drift, the entropy term only the noise level. The
+chunk is squashed once, after the last step, into the env's box (`squash_to_box`); the
+tanh correction enters the entropy's value but not its gradient (it would otherwise pull
+the velocity network toward the origin, and the design keeps entropy gradients on σ).
+Log-probs are divided by H·D (entropy per action dimension) so that α does not depend on
+the chunk size. The twin Q sees the state and the executed part of the chunk.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .ppo import k3_kl
+from .sde_policy import rescore_chain, sample_chain, squash_to_box
+
+
+class ReplayBuffer:
+    """A ring buffer of chunk-level transitions (tensors on the CPU)."""
+
+    FIELDS = ("state", "progress", "actions", "reward", "next_state", "next_progress", "done")
+
+    def __init__(self, capacity: int):
+        self.capacity, self.size, self.pos = capacity, 0, 0
+        self.data: dict[str, Tensor] = {}
+
+    def add(self, rows: dict) -> None:
+        n = len(rows["reward"])
+        if not self.data:
+            self.data = {k: torch.zeros((self.capacity, *rows[k].shape[1:]), dtype=rows[k].dtype)
+                         for k in self.FIELDS}
+        idx = (self.pos + torch.arange(n)) % self.capacity
+        for k in self.FIELDS:
+            self.data[k][idx] = rows[k]
+        self.pos, self.size = int((self.pos + n) % self.capacity), min(self.size + n, self.capacity)
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> dict:
+        idx = torch.randint(self.size, (batch_size,), generator=generator)
+        return {k: v[idx] for k, v in self.data.items()}
+
+    def state_dict(self) -> dict:
+        return {"capacity": self.capacity, "size": self.size, "pos": self.pos,
+                "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.capacity, self.size, self.pos = state["capacity"], state["size"], state["pos"]
+        self.data = {k: torch.cat([v, torch.zeros((self.capacity - len(v), *v.shape[1:]), dtype=v.dtype)])
+                     for k, v in state["data"].items()}
+
+
+def actor_sample(policy, batch: dict, cfg, generator: torch.Generator):
+    """Reparameterised chunk: (env actions [B, H, D], per-dim log-prob [B] (σ-only gradient), result)."""
+    res = sample_chain(policy, batch, cfg.sde_steps, generator, reduce="sum", logprob="eps")
+    actions, log_det = squash_to_box(res.chain[:, -1], policy.normalizers["actions"])
+    numel = res.chain.shape[-1] * res.chain.shape[-2]
+    return actions, (res.step_log_probs.sum(1) - log_det.detach()) / numel, res
+
+
+def sac_update(policy, reference, q, q_target, opt_actor, opt_q, buffer: ReplayBuffer,
+               make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator) -> dict:
+    """One critic and one actor step on a replay batch; Polyak-averages the target critic."""
+    b = buffer.sample(cfg.sac_batch_size, generator)
+    n = b["actions"].shape[1]
+    norm = policy.normalizers["state"].normalize
+    with torch.no_grad():
+        nxt, logp_next, _ = actor_sample(policy, make_batch(b["next_state"]), cfg, generator)
+        tq = torch.min(*q_target(norm(b["next_state"]), b["next_progress"], nxt[:, :n]))
+        target = b["reward"] + cfg.gamma * (1 - b["done"].float()) * (tq - cfg.alpha * logp_next)
+    q1, q2 = q(norm(b["state"]), b["progress"], b["actions"])
+    q_loss = (q1 - target).square().mean() + (q2 - target).square().mean()
+    opt_q.zero_grad(set_to_none=True)
+    q_loss.backward()
+    torch.nn.utils.clip_grad_norm_(q.parameters(), cfg.grad_clip)
+    opt_q.step()
+
+    batch = make_batch(b["state"])
+    actions, logp, res = actor_sample(policy, batch, cfg, generator)
+    q_pi = torch.min(*q(norm(b["state"]), b["progress"], actions[:, :n]))
+    actor_loss = (cfg.alpha * logp - q_pi).mean()
+    stats = {"q_loss": float(q_loss.detach()), "q": float(q_pi.detach().mean()),
+             "entropy_per_dim": float(-logp.detach().mean())}
+    if cfg.kl_coef > 0:
+        chain = res.chain.detach()
+        lp = rescore_chain(policy, batch, chain, res.grid)
+        with torch.no_grad():
+            lp_ref = rescore_chain(reference, batch, chain, res.grid)
+        kl = k3_kl(lp_ref - lp)[:, : chain.shape[1] - 1 - cfg.skip_last_steps].mean()
+        actor_loss = actor_loss + cfg.kl_coef * kl
+        stats["kl_bc"] = float(kl.detach())
+    opt_actor.zero_grad(set_to_none=True)
+    actor_loss.backward()
+    torch.nn.utils.clip_grad_norm_([p for g in opt_actor.param_groups for p in g["params"]], cfg.grad_clip)
+    opt_actor.step()
+    with torch.no_grad():
+        for p, tp in zip(q.parameters(), q_target.parameters()):
+            tp.lerp_(p, cfg.tau)
+    stats["actor_loss"] = float(actor_loss.detach())
+    return stats
+
+
+def make_target(q):
+    target = copy.deepcopy(q)
+    target.requires_grad_(False)
+    return target

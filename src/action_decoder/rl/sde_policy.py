@@ -1,0 +1,87 @@
+"""The policy seen as a stochastic chain: building the fine-tuning policy, sampling and
+re-scoring chains with a chosen log-prob reduction, and squashing into the env's box.
+
+`ActionDecoderPolicy.sample`/`chain_log_prob` always sum log-probs over the chunk; PPO needs
+the reduction as an option and SAC needs the chain with gradients and its ε-form density,
+so these helpers call `flows.sample_sde`/`chain_log_prob` on the policy's bound velocity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Mapping, Optional
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..flows import SDEResult, chain_log_prob, sample_sde, velocity_from_meanflow
+from ..policy import ActionDecoderPolicy
+
+
+def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, steps: int,
+                    extra: Optional[dict] = None) -> ActionDecoderPolicy:
+    """A copy of a BC policy that samples with the exploring SDE: σ(t) = a·√((1−t)/t), a = `sigma`,
+    times a learnable multiplier (starting at exactly 1) when `learn_sigma`; K = `steps`.
+
+    The saved config has flow_sde_use=True so `action-decoder eval` samples the chain that was
+    optimised by default (`--sampler ode` gives the deterministic policy).
+    """
+    if bc.config.decoder_type == "DDPM":
+        raise ValueError("--checkpoint: RL fine-tuning needs a flow_matching or mean_flow decoder (its SDE "
+                         "sampler has per-step densities); this checkpoint is decoder_type='DDPM'")
+    cfg = replace(bc.config, flow_sde_use=True, flow_sde_mode="explore", flow_sde_s_churn=float(sigma),
+                  flow_sde_learn_sigma=bool(learn_sigma), flow_sde_sigma_init=1.0,
+                  num_inference_timesteps=int(steps), flow_sde_return_logprob=False,
+                  extra={**bc.config.extra, **(extra or {})})
+    policy = ActionDecoderPolicy(cfg)
+    weights = {k: v for k, v in bc.state_dict().items() if not k.startswith("sigma.")}
+    missing, unexpected = policy.load_state_dict(weights, strict=False)
+    if unexpected or any(not k.startswith("sigma.") for k in missing):
+        raise ValueError(f"--checkpoint: weights do not fit the fine-tuning policy (missing {missing[:5]}, "
+                         f"unexpected {unexpected[:5]})")
+    return policy.to(next(bc.parameters()).device)
+
+
+def chain_velocity(policy: ActionDecoderPolicy, batch: Mapping):
+    """v(x, t) bound to `batch`: the FM head, or MeanFlow's boundary u(x, t, r=t)."""
+    bound = policy.bind(batch)
+    if policy.config.decoder_type == "flow_matching":
+        return bound.velocity
+    return velocity_from_meanflow(bound.avg_velocity, "boundary")
+
+
+def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, generator: Optional[torch.Generator],
+                 reduce: str = "sum", logprob: str = "full", noise: Optional[Tensor] = None) -> SDEResult:
+    """One SDE chain per row, in normalised action units, with per-step log-probs [B, K]
+    (differentiable: wrap in no_grad for rollouts)."""
+    cfg = policy.config
+    if noise is None:
+        b = batch["state"].shape[0]
+        noise = torch.randn((b, cfg.action_chunk_size, cfg.action_dim), generator=generator,
+                            device=batch["state"].device)
+    return sample_sde(chain_velocity(policy, batch), noise, steps, policy.sigma, generator=generator,
+                      return_logprob=True, logprob=logprob, clip_t=cfg.flow_sde_clip_t, reduce=reduce)
+
+
+def rescore_chain(policy: ActionDecoderPolicy, batch: Mapping, chain: Tensor, grid: Tensor,
+                  reduce: str = "sum") -> Tensor:
+    """Per-step log-probs [B, K] of stored chains under the current weights and σ."""
+    return chain_log_prob(chain_velocity(policy, batch), chain, policy.sigma, grid=grid,
+                          clip_t=policy.config.flow_sde_clip_t, reduce=reduce)
+
+
+def squash_to_box(x: Tensor, normalizer) -> tuple[Tensor, Tensor]:
+    """Env-unit actions tanh(unnormalise(x)) ∈ (−1, 1) and log|det ∂a/∂x| [B] for x [B, H, D].
+
+    The squash acts once, after the last step, on *environment* units: squashing the
+    normalised chunk (`sample_sde(squash=True)`) would bound it to mean ± 1 std of the
+    demonstrations, not to Meta-World's [−1, 1] box.
+    """
+    zero = torch.zeros(x.shape[-1], dtype=x.dtype, device=x.device)
+    scale = normalizer.unnormalize(zero + 1) - normalizer.unnormalize(zero)          # [D]
+    u = normalizer.unnormalize(x)
+    # log(1 − tanh²u) = 2·(log 2 − u − softplus(−2u)), stable for large |u|.
+    log_det = 2 * (math.log(2) - u - F.softplus(-2 * u)) + scale.abs().log()
+    return torch.tanh(u), log_det.sum((-2, -1))

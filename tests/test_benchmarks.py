@@ -1,0 +1,52 @@
+"""Smoke test of the benchmark command (`python -m benchmarks --tiny`): not a timed test."""
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def bench_main(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT))          # `benchmarks` lives at the repository root
+    sys.modules.pop("benchmarks", None)
+    from benchmarks.__main__ import main
+    return main
+
+
+def test_quick_mode_on_a_tiny_config_writes_finite_tables(bench_main, tmp_path):
+    pytest.importorskip("diffusers")
+    pytest.importorskip("matplotlib")
+    quality = tmp_path / "evals"
+    quality.mkdir()
+    (quality / "eval.json").write_text(json.dumps(
+        {"decoder_type": "mean_flow", "sampler": "ode", "steps": 1, "success_rate": 0.5, "latency_ms": 3.0}))
+    out = tmp_path / "bench"
+    assert bench_main(["--tiny", "--out", str(out), "--quality-dir", str(quality)]) == 0
+
+    readme = (out / "README.md").read_text()
+    for heading in ("## Machine", "## 1. Sampler overhead", "## 2. Training step", "## 3. Peers",
+                    "## 4. Quality vs latency", "## 5. Memory"):
+        assert heading in readme
+    assert "torch thread" in readme and "not measured" in readme
+    assert (out / "benchmarks.png").stat().st_size > 0
+
+    res = json.loads((out / "results.json").read_text())
+    ratios = [r["overhead"] for s in res["sampling"] for r in s["rows"]]
+    ratios += [r["vs_fm"] for s in res["training"] for r in s["rows"]]
+    ratios += [r["ours_over_peer"] for s in res["peers"] for r in s["rows"]]
+    ratios += [v for s in res["training"] for v in s["memory"]["bytes"].values()]
+    assert ratios and all(math.isfinite(x) and x > 0 for x in ratios)
+    assert all(r["agree"] for s in res["peers"] for r in s["rows"])      # same outputs as the peers
+    mf1 = [r for r in res["quality"]["rows"] if (r["decoder"], r["sampler"], r["steps"]) == ("mean_flow", "ode", 1)]
+    assert mf1[0]["success_rate"] == 0.5 and mf1[0]["latency_ms"] == 3.0
+
+    # Regenerating keeps hand-written text outside the generated block.
+    (out / "README.md").write_text(readme + "\nHAND-WRITTEN NOTE\n")
+    assert bench_main(["--tiny", "--out", str(out), "--sections", "quality", "--no-plot"]) == 0
+    again = (out / "README.md").read_text()
+    assert "HAND-WRITTEN NOTE" in again and "## 4. Quality vs latency" in again

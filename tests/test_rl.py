@@ -1,0 +1,162 @@
+"""RL fine-tuning: on-policy ratio 1, SAC's σ-only entropy gradient, the tanh correction,
+σ → 0 reducing to the deterministic policy, and `finetune` → `eval` through the CLI."""
+
+import json
+from types import SimpleNamespace
+
+import pytest
+import torch
+from torch.distributions import AffineTransform, Normal, TanhTransform, TransformedDistribution
+
+from action_decoder import (ActionDecoderPolicy, DecoderConfig, ExploringSigma, sample_ode, sample_sde,
+                            velocity_from_meanflow)
+from action_decoder.envs import make_env
+from action_decoder.cli import main
+from action_decoder.rl.critics import ValueNet
+from action_decoder.rl.finetune import chain_actor
+from action_decoder.rl.ppo import gae, ppo_update
+from action_decoder.rl.rollout import collect
+from action_decoder.rl.sac import actor_sample
+from action_decoder.rl.sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
+
+S, D, H = 39, 4, 4
+
+
+def _stats(gen):
+    def one(dim):
+        return {"mean": torch.randn(dim, generator=gen) * 0.1, "std": 0.5 + torch.rand(dim, generator=gen),
+                "min": -torch.ones(dim), "max": torch.ones(dim)}
+    return {"state": one(S), "actions": one(D)}
+
+
+def _bc(decoder="flow_matching", task="reach-v3"):
+    gen = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    cfg = DecoderConfig(decoder_type=decoder, state_dim=S, action_dim=D, action_chunk_size=H, n_action_steps=H,
+                        hidden_size=16, num_hidden_layers=1, num_attention_heads=2, num_key_value_heads=1,
+                        num_inference_timesteps=2, extra={"tasks": [task]})
+    return ActionDecoderPolicy(cfg, _stats(gen))
+
+
+def _batch(n=6):
+    return {"state": torch.randn(n, S, generator=torch.Generator().manual_seed(1))}
+
+
+@pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
+def test_ratio_is_one_on_policy_and_checked(decoder):
+    policy = finetune_policy(_bc(decoder), sigma=0.5, learn_sigma=True, steps=5)
+    batch, gen = _batch(), torch.Generator().manual_seed(0)
+    for reduce in ("sum", "mean"):
+        with torch.no_grad():
+            res = sample_chain(policy, batch, 5, torch.Generator().manual_seed(0), reduce=reduce)
+        lp = rescore_chain(policy, batch, res.chain, res.grid, reduce)
+        assert torch.allclose((lp - res.step_log_probs).exp(), torch.ones_like(lp), atol=1e-5)
+    # through ppo_update: the run-time check passes on-policy and fails once the weights moved
+    value = ValueNet(S)
+    data = {"states": batch["state"], "state_norm": batch["state"], "progress": torch.zeros(6),
+            "chain": res.chain, "grid": res.grid, "logp_old": res.step_log_probs, "logp_ref": res.step_log_probs,
+            "adv": torch.randn(6, generator=gen), "ret": torch.zeros(6)}
+    cfg = SimpleNamespace(skip_last_steps=1, ppo_epochs=1, minibatch_size=6, logprob_reduce="mean", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0)
+    opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=1e-2)
+    stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, gen)
+    assert stats["ratio_dev_before_update"] < 1e-5
+    with pytest.raises(RuntimeError, match="ratio is not 1"):
+        ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, gen)
+
+
+def test_gae_terminal_truncation_and_episode_boundaries():
+    r = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    v = torch.tensor([0.5, 0.5, 0.2, 0.2])
+    nv = torch.tensor([9.0, 9.0, 9.0, 3.0])           # only the truncated row's next value is used
+    last, term = torch.tensor([False, True, False, True]), torch.tensor([False, True, False, False])
+    adv, ret = gae(r, v, nv, term, last, gamma=0.5, lam=1.0)
+    assert torch.allclose(ret, torch.tensor([0.5, 1.0, 0.75, 1.5]))
+
+
+def test_sac_entropy_gradient_reaches_sigma_only():
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
+    cfg = SimpleNamespace(sde_steps=4)
+    actions, logp, _ = actor_sample(policy, _batch(), cfg, torch.Generator().manual_seed(0))
+    logp.sum().backward(retain_graph=True)
+    assert policy.sigma.log_scale.grad is not None and policy.sigma.log_scale.grad.abs() > 0
+    assert all(p.grad is None or not p.grad.any() for p in policy.model.parameters())
+    policy.zero_grad()
+    actions.square().sum().backward()                  # a Q-like term moves the velocity network
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.parameters())
+
+
+def test_squash_correction_matches_transformed_distribution():
+    gen = torch.Generator().manual_seed(0)
+    noise = torch.randn(5, H, D, generator=gen, dtype=torch.float64)   # float64: atanh near ±1
+    velocity = lambda x, t: 0.3 - 0.5 * x               # noqa: E731
+    sigma = ExploringSigma(0.3)
+    res = sample_sde(velocity, noise, steps=1, sigma=sigma, generator=gen, return_logprob=True, squash=True)
+    base = Normal(res.means[:, 0], res.stds[:, 0, None, None].expand_as(res.means[:, 0]))
+    ref = TransformedDistribution(base, [TanhTransform()]).log_prob(res.actions).sum((-2, -1))
+    assert torch.allclose(res.log_prob, ref, atol=1e-6)
+    # squashing into the env box after un-normalising: Normal -> affine -> tanh
+    norm = _bc().normalizers["actions"]
+    env_actions, log_det = squash_to_box(res.chain[:, -1], norm)
+    ref = TransformedDistribution(base, [AffineTransform(norm.mean.double(), norm.std.double()), TanhTransform()])
+    assert torch.allclose(res.step_log_probs.sum(1) - log_det, ref.log_prob(env_actions).sum((-2, -1)),
+                          atol=1e-6)
+
+
+@pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
+def test_sigma_to_zero_is_the_deterministic_policy(decoder):
+    bc = _bc(decoder)
+    policy = finetune_policy(bc, sigma=1e-7, learn_sigma=True, steps=3)
+    batch = _batch()
+    noise = torch.randn(6, H, D, generator=torch.Generator().manual_seed(2))
+    res = sample_chain(policy, batch, 3, torch.Generator().manual_seed(3), noise=noise)
+    bound = policy.bind(batch)
+    v = bound.velocity if decoder == "flow_matching" else velocity_from_meanflow(bound.avg_velocity)
+    assert torch.allclose(res.chain[:, -1], sample_ode(v, noise, 3), atol=1e-5)
+    if decoder == "flow_matching":                      # = the policy's own ODE sampler
+        ode = policy.sample(batch, sampler="ode", steps=3, noise=noise).actions
+        assert torch.allclose(policy.normalizers["actions"].unnormalize(res.chain[:, -1]), ode, atol=1e-5)
+    # the PPO rollout executes exactly the deterministic chunk of its chain's start noise
+    act = chain_actor(policy, lambda s: {"state": s}, 3, torch.Generator().manual_seed(0), "sum", squash=False)
+    ro = collect([make_env("reach-v3", seed=0)], [7], act, H, max_steps=12)
+    with torch.no_grad():
+        bound = policy.bind({"state": ro.states})
+        v = bound.velocity if decoder == "flow_matching" else velocity_from_meanflow(bound.avg_velocity)
+        det = policy.normalizers["actions"].unnormalize(sample_ode(v, ro.records["chain"][:, 0], 3))
+    assert ro.records["actions"].shape == (3, H, D)
+    assert torch.allclose(ro.records["actions"], det, atol=1e-4)
+
+
+def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    args = ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30", "--num-envs", "2",
+            "--max-episode-steps", "12", "--sde-steps", "3", "--eval-episodes", "1", "--minibatch-size", "4",
+            "--critic-warmup-iters", "0", "--checkpoint-every", "1", "--kl-coef", "0.01"]
+    assert main(args) == 0
+    log = json.loads((out / "finetune_log.json").read_text())
+    assert log["history"][-1]["env_steps"] >= 30 and "ratio_min" in log["history"][-1]
+    assert (out / "finetune.png").is_file()
+    assert main(args) == 2                                  # refuses to overwrite a run
+    assert "already holds a fine-tuning run" in capsys.readouterr().err
+    assert main([*args[:5], "--env-steps", "54", *args[7:], "--resume"]) == 0
+    log2 = json.loads((out / "finetune_log.json").read_text())
+    assert log2["history"][: len(log["history"])] == log["history"] and len(log2["history"]) > len(log["history"])
+    assert main(["eval", "--checkpoint", str(out / "final"), "--episodes", "1", "--num-envs", "1"]) == 0
+    assert "success_rate=" in capsys.readouterr().out
+    cfg = json.loads((out / "final" / "config.json").read_text())
+    assert cfg["flow_sde_use"] and cfg["flow_sde_mode"] == "explore" and cfg["flow_sde_learn_sigma"]
+    # SAC path, one short run
+    assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *args[5:], "--sac-batch-size", "4"]) == 0
+
+
+def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
+    ddpm = tmp_path / "ddpm"
+    _bc("DDPM").save_pretrained(ddpm)
+    assert main(["finetune", "--checkpoint", str(ddpm), "--output-dir", str(tmp_path / "o")]) == 2
+    assert "flow_matching or mean_flow" in capsys.readouterr().err
+    ok = tmp_path / "fm"
+    _bc().save_pretrained(ok)
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--skip-last-steps",
+                 "10"]) == 2
+    assert "--skip-last-steps" in capsys.readouterr().err
