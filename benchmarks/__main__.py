@@ -1,0 +1,42 @@
+"""python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# One torch thread unless the user says otherwise (set before torch is imported).
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
+    parser.add_argument("--tiny", action="store_true", help="tiny networks and few rounds (smoke test)")
+    parser.add_argument("--out", default="docs/benchmarks", help="where README.md, results.json, the plot go")
+    parser.add_argument("--quality-dir", default=None,
+                        help="directory searched (recursively) for eval JSON files (action-decoder eval)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (CUDA events on a GPU)")
+    parser.add_argument("--threads", type=int, default=int(os.environ["OMP_NUM_THREADS"]))
+    parser.add_argument("--sections", default="sampling,training,peers,memory,quality",
+                        help="comma-separated subset of sampling,training,peers,memory,quality")
+    parser.add_argument("--no-plot", action="store_true")
+    args = parser.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from .suite import BenchConfig, run_suite
+
+    mode = "tiny" if args.tiny else ("quick" if args.quick else "default")
+    cfg = BenchConfig.preset(mode, device=args.device, out=args.out, quality_dir=args.quality_dir,
+                             sections=tuple(s.strip() for s in args.sections.split(",") if s.strip()),
+                             plot=not args.no_plot)
+    run_suite(cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
