@@ -7,6 +7,8 @@ and on this path the score is  ∇log p_t(x) = (t·v(x, t) − x) / (1 − t).
 
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
@@ -52,10 +54,34 @@ def check_chunk(x: Tensor, name: str = "noise") -> None:
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
 
 
-def resolve_grid(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch.dtype) -> Tensor:
+@dataclass(frozen=True)
+class Steps:
+    """A grid [K+1] with what the loops read each step: Δt as host floats, and the start and
+    end times of each step as [B] tensors (built once, not sliced inside the loop)."""
+
+    grid: Tensor
+    dts: tuple
+    starts: tuple
+    ends: tuple
+
+
+def _steps(grid: Tensor, batch: int) -> Steps:
+    return Steps(grid, tuple(grid.diff().tolist()), tuple(grid[:-1, None].expand(-1, batch).unbind(0)),
+                 tuple(grid[1:, None].expand(-1, batch).unbind(0)))
+
+
+@functools.lru_cache(maxsize=64)
+def _uniform_steps(steps: int, batch: int, device: torch.device, dtype: torch.dtype) -> Steps:
+    # Shared between calls (never modified in place): a sampling call then costs no grid
+    # construction, no slicing and, on a GPU, no host sync for the step sizes.
+    return _steps(time_grid(steps, device=device, dtype=dtype), batch)
+
+
+def resolve_steps(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch.dtype) -> Steps:
     """The grid a sampler integrates on: `grid` if given (validated), else uniform with `steps`."""
     if grid is None:
-        return time_grid(steps, device=like.device, dtype=dtype)
+        check_steps(steps)
+        return _uniform_steps(steps, like.shape[0], like.device, dtype)
     grid = torch.as_tensor(grid)
     if grid.dim() != 1 or grid.numel() < 2:
         raise ValueError(f"grid: expected an ascending 1-D time grid [K+1] from 0 to 1, "
@@ -65,7 +91,7 @@ def resolve_grid(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch.
     if not bool((grid.diff() > 0).all()) or float(grid[0]) < 0 or float(grid[-1]) > 1:
         raise ValueError(f"grid: expected strictly ascending times within [0, 1], "
                          f"got {grid.tolist()}")
-    return grid
+    return _steps(grid, like.shape[0])
 
 
 def checked_call(fn: Callable, x: Tensor, *args: Tensor, dtype: torch.dtype, name: str) -> Tensor:

@@ -15,8 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .paths import (AvgVelocity, Velocity, check_chunk, check_steps, checked_call, compute_dtype,
-                    resolve_grid)
+from .paths import (AvgVelocity, Velocity, check_chunk, checked_call, compute_dtype, resolve_steps)
 from .sigma import ChurnSigma, FixedSigma
 
 LOGPROB_FORMS = ("full", "eps")
@@ -26,36 +25,27 @@ _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 def _setup(noise: Tensor, steps: int, grid: Optional[Tensor]):
     check_chunk(noise, "noise")
-    if grid is None:
-        check_steps(steps)
     dtype = compute_dtype(noise)
-    grid = resolve_grid(steps, grid, noise, dtype)
-    # t of each step as a [B] view (no per-step allocation); dt as host floats.
-    times = grid[:-1, None].expand(-1, noise.shape[0])   # [K, B]
-    return dtype, grid, times
+    return dtype, resolve_steps(steps, grid, noise, dtype)
 
 
 def sample_ode(velocity: Velocity, noise: Tensor, steps: int = 10,
                grid: Optional[Tensor] = None) -> Tensor:
     """Euler integration of dx/dt = v(x, t) from t = 0 (noise) to 1: the FM-ODE sampler."""
-    dtype, grid, times = _setup(noise, steps, grid)
-    dts = grid.diff().tolist()
+    dtype, st = _setup(noise, steps, grid)
     x = noise.to(dtype)
-    for k, dt in enumerate(dts):
-        x = x.add(checked_call(velocity, x, times[k], dtype=dtype, name="velocity"), alpha=dt)
+    for t, dt in zip(st.starts, st.dts):
+        x = x.add(checked_call(velocity, x, t, dtype=dtype, name="velocity"), alpha=dt)
     return x.to(noise.dtype)
 
 
 def sample_meanflow(avg_velocity: AvgVelocity, noise: Tensor, steps: int = 1,
                     grid: Optional[Tensor] = None) -> Tensor:
     """MeanFlow steps `x ← x + (r − t)·u(x, t, r)` with (t, r) consecutive grid points."""
-    dtype, grid, times = _setup(noise, steps, grid)
-    ends = grid[1:, None].expand(-1, noise.shape[0])     # [K, B]
-    dts = grid.diff().tolist()
+    dtype, st = _setup(noise, steps, grid)
     x = noise.to(dtype)
-    for k, dt in enumerate(dts):
-        u = checked_call(avg_velocity, x, times[k], ends[k], dtype=dtype, name="avg_velocity")
-        x = x.add(u, alpha=dt)
+    for t, r, dt in zip(st.starts, st.ends, st.dts):
+        x = x.add(checked_call(avg_velocity, x, t, r, dtype=dtype, name="avg_velocity"), alpha=dt)
     return x.to(noise.dtype)
 
 
@@ -166,17 +156,19 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     """
     _check_logprob_args(logprob, reduce, clip_t)
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
-    dtype, grid, times = _setup(noise, steps, grid)
+    dtype, st = _setup(noise, steps, grid)
+    grid = st.grid
     a, b, std = _step_coefficients(sigma, grid, clip_t)
     B, K = noise.shape[0], grid.numel() - 1
     eps = torch.randn((B, K, *noise.shape[1:]), generator=generator, device=noise.device,
                       dtype=dtype)
     x = noise.to(dtype)
     states, means = [x], []
-    for k in range(K):
-        v = checked_call(velocity, x, times[k], dtype=dtype, name="velocity")
-        mean = torch.addcmul(x * a[k], v, b[k])
-        x = torch.addcmul(mean, eps[:, k], std[k])
+    # Per-step views made once (unbind), not indexed inside the loop.
+    for t, a_k, b_k, std_k, eps_k in zip(st.starts, a.unbind(), b.unbind(), std.unbind(), eps.unbind(1)):
+        v = checked_call(velocity, x, t, dtype=dtype, name="velocity")
+        mean = torch.addcmul(x * a_k, v, b_k)
+        x = torch.addcmul(mean, eps_k, std_k)
         states.append(x)
         means.append(mean)
     chain, means_t = torch.stack(states, 1), torch.stack(means, 1)
@@ -213,14 +205,14 @@ def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tens
                          f"{tuple(chain.shape) if isinstance(chain, Tensor) else type(chain).__name__}")
     sigma = _as_sigma(sigma)
     B, K = chain.shape[0], chain.shape[1] - 1
-    dtype, grid, times = _setup(chain[:, 0], K, grid)
+    dtype, st = _setup(chain[:, 0], K, grid)
+    grid = st.grid
     if grid.numel() != K + 1:
         raise ValueError(f"grid: expected {K + 1} points for a chain of {K} steps, got {grid.numel()}")
     a, b, std = _step_coefficients(sigma, grid, clip_t)
     chain = chain.to(dtype)
-    means = torch.stack([torch.addcmul(chain[:, k] * a[k],
-                                       checked_call(velocity, chain[:, k], times[k], dtype=dtype,
-                                                    name="velocity"), b[k])
-                         for k in range(K)], 1)                       # [B, K, H, D]
+    means = torch.stack([torch.addcmul(x * a_k, checked_call(velocity, x, t, dtype=dtype, name="velocity"), b_k)
+                         for x, t, a_k, b_k in zip(chain[:, :-1].unbind(1), st.starts, a.unbind(), b.unbind())],
+                        1)                                            # [B, K, H, D]
     stds = std.expand(B, K)
     return _gaussian_log_prob((chain[:, 1:] - means) / stds.reshape(B, K, 1, 1), stds, reduce)
