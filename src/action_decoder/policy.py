@@ -50,6 +50,8 @@ class Bound:
     avg_velocity: Callable[[Tensor, Tensor, Tensor], Tensor]
     model_output: Callable[[Tensor, Tensor], Tensor]
     batch_size: int
+    # What the ODE/SDE samplers integrate: the FM head, or MeanFlow's boundary u(x, t, r=t).
+    flow_velocity: Optional[Callable[[Tensor, Tensor], Tensor]] = None
 
 
 class ActionDecoderPolicy(nn.Module):
@@ -127,11 +129,16 @@ class ActionDecoderPolicy(nn.Module):
         self._validate(batch, need_actions=False)
         cond = self._prepare(batch)
         state, ctrl, prefix = cond["state"], cond["ctrl_freq"], cond["prefix"]
-        return Bound(
+        bound = Bound(
             velocity=lambda x, t: self._net(x, t, t, state, ctrl, prefix),
             avg_velocity=lambda x, t, r: self._net(x, t, r, state, ctrl, prefix),
             model_output=lambda x, s: self._net(x, self._ddpm_time(s), self._ddpm_time(s), state, ctrl, prefix),
             batch_size=state.shape[0])
+        if self.config.decoder_type == "flow_matching":
+            bound.flow_velocity = bound.velocity
+        elif self.config.decoder_type == "mean_flow":
+            bound.flow_velocity = velocity_from_meanflow(bound.avg_velocity, "boundary")
+        return bound
 
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
@@ -198,8 +205,7 @@ class ActionDecoderPolicy(nn.Module):
         if noise is None:
             noise = torch.randn((bound.batch_size, cfg.action_chunk_size, cfg.action_dim),
                                 generator=generator, device=param.device)
-        velocity = bound.velocity if cfg.decoder_type == "flow_matching" else \
-            velocity_from_meanflow(bound.avg_velocity, "boundary")
+        velocity = bound.flow_velocity
         out = PolicyOutput()
         if chosen == "sde":
             res = sample_sde(velocity, noise, steps, self.sigma, generator=generator,
@@ -216,14 +222,12 @@ class ActionDecoderPolicy(nn.Module):
         out.actions = self.normalizers["actions"].unnormalize(x)
         return out
 
-    def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor) -> Tensor:
-        """Per-step log-probs [B, K] of a stored SDE chain under the current weights (PPO)."""
+    def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor, reduce: str = "sum") -> Tensor:
+        """Per-step log-probs [B, K] of a stored SDE chain under the current weights and σ (PPO)."""
         if self.config.decoder_type == "DDPM":
             raise ValueError("chain_log_prob: needs a flow_matching or mean_flow decoder, got DDPM")
-        bound = self.bind(batch)
-        velocity = bound.velocity if self.config.decoder_type == "flow_matching" else \
-            velocity_from_meanflow(bound.avg_velocity, "boundary")
-        return chain_log_prob(velocity, chain, self.sigma, grid=grid, clip_t=self.config.flow_sde_clip_t)
+        return chain_log_prob(self.bind(batch).flow_velocity, chain, self.sigma, grid=grid,
+                              clip_t=self.config.flow_sde_clip_t, reduce=reduce)
 
     def forward(self, batch: Mapping[str, Any], sampler: Optional[str] = None, return_logprob: Optional[bool] = None,
                 steps: Optional[int] = None, generator: Optional[torch.Generator] = None) -> PolicyOutput:

@@ -142,27 +142,43 @@ def _set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
 
 
-def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen: torch.Generator,
-                    loss_gen: torch.Generator, history: list) -> Path:
-    """Write `checkpoints/step_N` through a temporary directory and a rename, then point
-    `checkpoints/last` at it (also atomically): a crash leaves the previous one intact."""
+def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
+    """Write `checkpoints/step_N` (policy + `training_state.pt`) through a temporary directory
+    and a rename, then point `checkpoints/last` at it (also atomically): a crash leaves the
+    previous checkpoint intact. Keeps the last two."""
     root = out / CKPT_DIR
     root.mkdir(parents=True, exist_ok=True)
     final = root / f"step_{step:07d}"
     tmp = root / f".tmp_step_{step:07d}"
     shutil.rmtree(tmp, ignore_errors=True)
     policy.save_pretrained(tmp)
-    torch.save({"step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
-                "history": history}, tmp / "training_state.pt")
+    torch.save(state, tmp / "training_state.pt")
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp, final)
     pointer = root / (LAST + ".tmp")
     pointer.write_text(final.name)
     os.replace(pointer, root / LAST)
-    for old in sorted(root.glob("step_*"))[:-2]:   # keep the last two
+    for old in sorted(root.glob("step_*"))[:-2]:
         shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def save_final(out: Path, policy) -> Path:
+    """`out/final` in `save_pretrained` format, replaced atomically."""
+    final, tmp = out / FINAL, out / ".tmp_final"
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    return final
+
+
+def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen: torch.Generator,
+                    loss_gen: torch.Generator, history: list) -> Path:
+    return write_checkpoint(out, step, policy, {
+        "step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+        "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
+        "history": history})
 
 
 def last_checkpoint(out: Path) -> Optional[Path]:
@@ -289,11 +305,7 @@ def train(cfg: TrainConfig) -> Path:
         bar.close()
     final = out / FINAL
     if main:
-        tmp = out / ".tmp_final"
-        shutil.rmtree(tmp, ignore_errors=True)
-        policy.save_pretrained(tmp)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
+        save_final(out, policy)
         (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
         if history:
             plot_losses(history, out / "loss.png", f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,7 +22,8 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..train import CKPT_DIR, FINAL, LAST, _rng_state, _set_rng_state, last_checkpoint, task_context
+from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save_final, task_context,
+                     write_checkpoint)
 from .critics import TwinQ, ValueNet
 from .ppo import gae, k3_kl, ppo_update
 from .rollout import collect
@@ -134,23 +133,6 @@ def _resolve_task(cfg: FinetuneConfig, trained: list[str]) -> tuple[str, int]:
     if len(trained) > 1 and task not in trained:
         raise ValueError(f"--task: {task} is not among the tasks this policy was trained on: {trained}")
     return task, trained.index(task) if len(trained) > 1 else 0
-
-
-def _save(out: Path, it: int, policy, state: dict) -> None:
-    """Atomic `checkpoints/step_N` (+ `last` pointer), as train.py does."""
-    root = out / CKPT_DIR
-    root.mkdir(parents=True, exist_ok=True)
-    final, tmp = root / f"step_{it:07d}", root / f".tmp_step_{it:07d}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    policy.save_pretrained(tmp)
-    torch.save(state, tmp / "training_state.pt")
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    pointer = root / (LAST + ".tmp")
-    pointer.write_text(final.name)
-    os.replace(pointer, root / LAST)
-    for old in sorted(root.glob("step_*"))[:-2]:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
@@ -325,16 +307,12 @@ def finetune(cfg: FinetuneConfig) -> Path:
                      "gen": gen.get_state(), "rng": _rng_state()}
             if buffer is not None:
                 state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict())
-            _save(out, iteration, policy, state)
+            write_checkpoint(out, iteration, policy, state)
     if not evals or evals[-1]["iteration"] != iteration:
         run_eval()
     for env in envs:
         env.close()
-    final, tmp = out / FINAL, out / ".tmp_final"
-    shutil.rmtree(tmp, ignore_errors=True)
-    policy.save_pretrained(tmp)
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
+    final = save_final(out, policy)
     (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
                                                        "evals": evals}, indent=1))
     plot_curves(history, evals, out / "finetune.png", f"{cfg.algo} on {task}")

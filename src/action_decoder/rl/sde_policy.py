@@ -1,9 +1,9 @@
 """The policy seen as a stochastic chain: building the fine-tuning policy, sampling and
 re-scoring chains with a chosen log-prob reduction, and squashing into the env's box.
 
-`ActionDecoderPolicy.sample`/`chain_log_prob` always sum log-probs over the chunk; PPO needs
-the reduction as an option and SAC needs the chain with gradients and its ε-form density,
-so these helpers call `flows.sample_sde`/`chain_log_prob` on the policy's bound velocity.
+`ActionDecoderPolicy.sample` sums log-probs over the chunk; PPO needs the reduction as an
+option and SAC needs the chain with gradients and its ε-form density, so sampling here calls
+`flows.sample_sde` on the policy's bound velocity.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..flows import SDEResult, chain_log_prob, sample_sde, velocity_from_meanflow
+from ..flows import SDEResult, sample_sde
 from ..policy import ActionDecoderPolicy
 
 
@@ -44,14 +44,6 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
     return policy.to(next(bc.parameters()).device)
 
 
-def chain_velocity(policy: ActionDecoderPolicy, batch: Mapping):
-    """v(x, t) bound to `batch`: the FM head, or MeanFlow's boundary u(x, t, r=t)."""
-    bound = policy.bind(batch)
-    if policy.config.decoder_type == "flow_matching":
-        return bound.velocity
-    return velocity_from_meanflow(bound.avg_velocity, "boundary")
-
-
 def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, generator: Optional[torch.Generator],
                  reduce: str = "sum", logprob: str = "full", noise: Optional[Tensor] = None) -> SDEResult:
     """One SDE chain per row, in normalised action units, with per-step log-probs [B, K]
@@ -61,15 +53,14 @@ def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, genera
         b = batch["state"].shape[0]
         noise = torch.randn((b, cfg.action_chunk_size, cfg.action_dim), generator=generator,
                             device=batch["state"].device)
-    return sample_sde(chain_velocity(policy, batch), noise, steps, policy.sigma, generator=generator,
+    return sample_sde(policy.bind(batch).flow_velocity, noise, steps, policy.sigma, generator=generator,
                       return_logprob=True, logprob=logprob, clip_t=cfg.flow_sde_clip_t, reduce=reduce)
 
 
 def rescore_chain(policy: ActionDecoderPolicy, batch: Mapping, chain: Tensor, grid: Tensor,
                   reduce: str = "sum") -> Tensor:
     """Per-step log-probs [B, K] of stored chains under the current weights and σ."""
-    return chain_log_prob(chain_velocity(policy, batch), chain, policy.sigma, grid=grid,
-                          clip_t=policy.config.flow_sde_clip_t, reduce=reduce)
+    return policy.chain_log_prob(batch, chain, grid, reduce=reduce)
 
 
 def squash_to_box(x: Tensor, normalizer) -> tuple[Tensor, Tensor]:
