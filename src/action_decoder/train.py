@@ -234,6 +234,9 @@ def train(cfg: TrainConfig) -> Path:
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
     torch.manual_seed(cfg.seed)
     policy = ActionDecoderPolicy(dconf, ds.stats).to(device)
+    # Behaviour cloning never touches the SDE noise scale; frozen, every trainable parameter is
+    # used by every loss, so DDP needs no unused-parameter search (flaky with the JVP's graph).
+    policy.sigma.requires_grad_(False)
     optimizer = torch.optim.AdamW([p for p in policy.parameters() if p.requires_grad], lr=cfg.lr,
                                   weight_decay=cfg.weight_decay)
     warm = max(cfg.warmup_steps, 1)
@@ -268,7 +271,7 @@ def train(cfg: TrainConfig) -> Path:
     model = policy
     if world > 1:
         model = torch.nn.parallel.DistributedDataParallel(
-            policy, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=True)
+            policy, device_ids=[device.index] if device.type == "cuda" else None)
     local_batch = cfg.batch_size // world
     bar = None
     if main and cfg.progress:
