@@ -172,3 +172,15 @@ def test_losses_reject_wrong_shapes():
         meanflow_loss(lambda x, t, r: x, bad)
     with pytest.raises(ValueError, match="actions"):
         ddpm_loss(lambda x, s: x, bad, cfg)
+
+
+@pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
+def test_clip_sample_bounds_the_x0_prediction(prediction_type):
+    cfg = DecoderConfig(prediction_type=prediction_type, clip_sample=True)
+    alphas = inference_scheduler(cfg).alphas_cumprod
+    far = GaussianMixture.make([[[5.0, -5.0]]], [0.1], dtype=torch.float64)   # data outside [−1, 1]
+    noise = torch.randn(64, 1, 2, dtype=torch.float64)
+    x = sample_ddpm(far.ddpm_model(alphas, prediction_type), noise, cfg, steps=10)
+    assert x.abs().max() <= 1 + 1e-6 and x.abs().min() > 0.9
+    unclipped = sample_ddpm(far.ddpm_model(alphas, prediction_type), noise, DecoderConfig(prediction_type=prediction_type), 10)
+    assert torch.allclose(unclipped.mean(0), far.means[0], atol=0.05)

@@ -83,7 +83,7 @@ def sample_ddpm(model_output: ModelOutput, noise: Tensor, config: DecoderConfig,
     dtype = compute_dtype(noise)
     sched = inference_scheduler(config)
     sched.set_timesteps(steps, device=noise.device)   # also resets the multistep history
-    alphas = sched.alphas_cumprod.to(device=noise.device, dtype=dtype)
+    alphas = sched.alphas_cumprod.to(device=noise.device, dtype=dtype) if config.clip_sample else None
     B = noise.shape[0]
     x = noise.to(dtype)
     for step in sched.timesteps:
