@@ -22,6 +22,7 @@ def test_go1_defaults():
     ({"num_train_timesteps": 0}, "num_train_timesteps"),
     ({"beta_schedule": "cosine"}, "beta_schedule"),
     ({"flow_sde_mode": "wild"}, "flow_sde_mode"),
+    ({"meanflow_time_dist": "beta"}, "meanflow_time_dist"),
     ({"flow_sde_sigma_init": 0.0}, "flow_sde_sigma_init"),
     ({"flow_sde_clip_t": 1.5}, "flow_sde_clip_t"),
     ({"meanflow_ratio_r_neq_t": 1.2}, "meanflow_ratio_r_neq_t"),

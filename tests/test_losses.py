@@ -91,6 +91,15 @@ def test_meanflow_times_are_logit_normal_and_ordered():
     assert n == 10000 and torch.all(t <= r)
     logits = torch.logit(torch.cat([t[:n], r[:n]]))
     assert abs(float(logits.mean()) - 0.4) < 0.03   # both draws together keep the logit-normal mean
+    t, r, n = sample_meanflow_times(20000, 0.5, 0.4, 1.0, torch.Generator().manual_seed(0), dist="uniform")
+    both = torch.cat([t[:n], r[:n]])
+    assert torch.all(t <= r) and abs(float(both.mean()) - 0.5) < 0.01 and abs(float(both.var()) - 1 / 12) < 0.003
+    # The whole interval, which 1-step sampling uses, is drawn often under "uniform" only.
+    corner = lambda t, r: float(((t[:n] < 0.1) & (r[:n] > 0.9)).float().mean())   # noqa: E731
+    assert corner(t, r) > 0.015
+    assert corner(*sample_meanflow_times(20000, 0.5, 0.4, 1.0, torch.Generator().manual_seed(0))[:2]) < 0.002
+    with pytest.raises(ValueError, match="time_dist"):
+        sample_meanflow_times(4, 0.5, 0.4, 1.0, dist="beta")
 
 
 def test_flow_matching_loss_minimised_by_exact_velocity():

@@ -49,6 +49,7 @@ class DecoderConfig:
     flow_sde_logprob_sigma_only: bool = True
     # --- MeanFlow training recipe (NOTES §2); times in our convention (t = 0 noise) ---
     meanflow_ratio_r_neq_t: float = 0.5
+    meanflow_time_dist: str = "uniform"     # "logit_normal" (the paper) or "uniform" (see README)
     meanflow_time_mean: float = 0.4
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
@@ -84,6 +85,7 @@ class DecoderConfig:
         _choice("beta_schedule", self.beta_schedule, BETA_SCHEDULES)
         _choice("flow_sde_mode", self.flow_sde_mode, SDE_MODES)
         _choice("normalization_mode", self.normalization_mode, NORMALIZATION_MODES)
+        _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
         for name in ("num_train_timesteps", "num_inference_timesteps", "action_chunk_size",
                      "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
                      "num_attention_heads", "num_key_value_heads", "n_action_steps"):

@@ -66,6 +66,8 @@ class TrainConfig:
     """MeanFlow: fraction of (t, r) pairs with r ≠ t."""
     meanflow_adaptive_p: float = 0.5
     """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
+    meanflow_time_dist: Literal["uniform", "logit_normal"] = "uniform"
+    """MeanFlow: distribution of (t, r); uniform covers the whole interval that 1-step sampling uses."""
     checkpoint_every: int = 500
     log_every: int = 25
     resume: bool = False
@@ -121,6 +123,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
+        meanflow_time_dist=cfg.meanflow_time_dist,
         extra={"tasks": tasks, "train": asdict(cfg)})
 
 

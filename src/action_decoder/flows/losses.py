@@ -63,16 +63,25 @@ def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, 
     return u.to(dtype), target.detach()
 
 
+TIME_DISTS = ("logit_normal", "uniform")
+
+
 def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: float,
                           generator: Optional[torch.Generator] = None, device=None,
-                          dtype: torch.dtype = torch.float32):
-    """(t, r, n): t ≤ r from two ordered logit-normal draws; rows n: have r = t.
+                          dtype: torch.dtype = torch.float32, dist: str = "logit_normal"):
+    """(t, r, n): t ≤ r from two ordered draws; rows n: have r = t.
 
-    Logit-normal with `mean` in our direction (the paper's −0.4 with t = 1 as noise is
-    +0.4 here). The first n = round(ratio·B) rows keep r ≠ t; rows are i.i.d., so which
-    rows get r = t does not matter, and a fixed split costs no host sync.
+    "logit_normal": the paper's recipe, with `mean` in our direction (its −0.4 with t = 1 as
+    noise is +0.4 here); it rarely draws the whole interval (t ≈ 0, r ≈ 1) that 1-step
+    sampling uses. "uniform": both times U[0, 1]. The first n = round(ratio·B) rows keep
+    r ≠ t; rows are i.i.d., so a fixed split costs no host sync.
     """
-    s = torch.sigmoid(mean + std * torch.randn(batch, 2, generator=generator, device=device, dtype=dtype))
+    if dist not in TIME_DISTS:
+        raise ValueError(f"time_dist: expected one of {list(TIME_DISTS)}, got {dist!r}")
+    if dist == "uniform":
+        s = torch.rand(batch, 2, generator=generator, device=device, dtype=dtype)
+    else:
+        s = torch.sigmoid(mean + std * torch.randn(batch, 2, generator=generator, device=device, dtype=dtype))
     t, r = s.min(1).values, s.max(1).values
     n = int(round(ratio_r_neq_t * batch))
     r = torch.cat([r[:n], t[n:]])
@@ -82,7 +91,7 @@ def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: fl
 def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optional[torch.Generator] = None,
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
-                  adaptive_c: float = 1e-3) -> Tensor:
+                  adaptive_c: float = 1e-3, time_dist: str = "logit_normal") -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -93,7 +102,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
-    t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype)
+    t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
+                                    time_dist)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e
     deltas = []
