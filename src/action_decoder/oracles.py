@@ -120,5 +120,5 @@ class Gaussian:
 
 def energy_distance(x: Tensor, y: Tensor) -> float:
     """Two-sample energy distance 2E|X−Y| − E|X−X'| − E|Y−Y'| between flattened samples."""
-    x, y = x.flatten(1).double(), y.flatten(1).double()
+    x, y = x.detach().flatten(1).double(), y.detach().flatten(1).double()
     return float(2 * torch.cdist(x, y).mean() - torch.cdist(x, x).mean() - torch.cdist(y, y).mean())
