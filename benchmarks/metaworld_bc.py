@@ -23,10 +23,11 @@ from pathlib import Path
 
 # (decoder, sampler, steps) columns of the table; the first per decoder is its default.
 METHODS = [("DDPM", "ode", 10), ("flow_matching", "ode", 10), ("flow_matching", "ode", 1),
-           ("mean_flow", "ode", 1), ("mean_flow", "ode", 2)]
+           ("mean_flow", "ode", 1), ("mean_flow", "ode", 2), ("mlp_baseline", "ode", 10), ("mlp_baseline", "ode", 1)]
 LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=10",
           ("flow_matching", "ode", 1): "FM K=1", ("mean_flow", "ode", 1): "MF K=1",
-          ("mean_flow", "ode", 2): "MF K=2"}
+          ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
+          ("mlp_baseline", "ode", 1): "MLP ref. K=1"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 
 
@@ -41,6 +42,11 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
+    if decoder == "mlp_baseline":       # the reference network: trains and evaluates in one go
+        if not (run / "eval_ode_k1.json").is_file():
+            _run([sys.executable, "-m", "benchmarks.mlp_baseline", "--task", task, "--seed", str(seed),
+                  "--demos", str(args.demos), "--episodes", str(args.episodes), "--output-dir", str(run)], log)
+        return
     if not (run / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (run / "checkpoints" / "last").is_file() else []
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos), "--steps",
@@ -95,7 +101,8 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="metaworld/medium,metaworld/hard,metaworld/very_hard")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    p.add_argument("--decoders", nargs="+", default=["DDPM", "flow_matching", "mean_flow"])
+    p.add_argument("--decoders", nargs="+", default=["DDPM", "flow_matching", "mean_flow", "mlp_baseline"],
+                   help="mlp_baseline: the plain-MLP flow-matching reference (benchmarks/mlp_baseline.py)")
     p.add_argument("--demos", type=int, default=10)
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--episodes", type=int, default=50)

@@ -50,3 +50,17 @@ def test_quick_mode_on_a_tiny_config_writes_finite_tables(bench_main, tmp_path):
     assert bench_main(["--tiny", "--out", str(out), "--sections", "quality", "--no-plot"]) == 0
     again = (out / "README.md").read_text()
     assert "HAND-WRITTEN NOTE" in again and "## 4. Quality vs latency" in again
+
+
+def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    for name in [m for m in sys.modules if m == "benchmarks" or m.startswith("benchmarks.")]:
+        sys.modules.pop(name)
+    from benchmarks import metaworld_bc, mlp_baseline
+
+    res = mlp_baseline.run("metaworld/reach", seed=0, demos=2, steps=20, batch_size=8, episodes=2, ks=(2, 1))
+    assert 150_000 < res["params"] < 200_000            # the ~190k-parameter reference of the issue
+    mlp_baseline.write_evals(res, tmp_path / "runs" / "reach-v3_s0_mlp_baseline", (2, 1))
+    table = metaworld_bc.collect(tmp_path / "runs")
+    assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]

@@ -35,6 +35,9 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     assert res.returncode == 0, res.stderr
     assert (out / "final" / "config.json").is_file() and (out / "loss.png").is_file()
     policy = ActionDecoderPolicy.from_pretrained(out / "final")
+    averaged, raw = policy.state_dict(), ActionDecoderPolicy.from_pretrained(out / "checkpoints" / "step_0000020").state_dict()
+    assert not torch.equal(averaged["model.action_in.weight"], raw["model.action_in.weight"]), \
+        "final/ should hold the weight average, not the raw weights"
     assert policy.config.decoder_type == "flow_matching" and policy.config.extra["tasks"] == ["reach-v3"]
     res = run(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
                "--sampler", "sde", "--steps", "3"], env)

@@ -13,7 +13,7 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, ExploringSigma, 
 from action_decoder.envs import make_env
 from action_decoder.cli import main
 from action_decoder.rl.critics import ValueNet
-from action_decoder.rl.finetune import chain_actor
+from action_decoder.rl.finetune import chain_actor, shaping
 from action_decoder.rl.ppo import gae, ppo_update
 from action_decoder.rl.rollout import collect
 from action_decoder.rl.sac import actor_sample
@@ -146,8 +146,11 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     assert "success_rate=" in capsys.readouterr().out
     cfg = json.loads((out / "final" / "config.json").read_text())
     assert cfg["flow_sde_use"] and cfg["flow_sde_mode"] == "explore" and cfg["flow_sde_learn_sigma"]
-    # SAC path, one short run
-    assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *args[5:], "--sac-batch-size", "4"]) == 0
+    # SAC path, one short run, stopped by the CPU budget after its first iteration
+    assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *args[5:], "--sac-batch-size", "4",
+                 "--env-steps", "100000", "--max-cpu-minutes", "1e-4"]) == 0
+    sac = json.loads((tmp_path / "sac" / "finetune_log.json").read_text())
+    assert len(sac["history"]) == 1 and sac["history"][0]["cpu_s"] > 0
 
 
 def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
@@ -160,3 +163,23 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--skip-last-steps",
                  "10"]) == 2
     assert "--skip-last-steps" in capsys.readouterr().err
+
+
+def test_shaping_is_potential_based_and_telescopes():
+    """On a real rollout, the discounted shaping of each episode sums to −Φ(s₀) when it ends in
+    success and to γ^n·Φ(s_n) − Φ(s₀) at a time limit: it cannot change which policy is best."""
+    envs = [make_env("reach-v3") for _ in range(2)]
+    gen = torch.Generator().manual_seed(0)
+
+    def act(states, progress):
+        return torch.rand((len(states), 8, 4), generator=gen).numpy() * 2 - 1, {}
+
+    ro = collect(envs, [3, 4], act, n_action_steps=4, max_steps=40)
+    gamma, f = 0.9, shaping(ro, 0.9)
+    assert torch.equal(ro.reward_before[1:][~ro.last[:-1]], ro.reward_after[:-1][~ro.last[:-1]])
+    ends = torch.nonzero(ro.last).flatten().tolist()
+    for start, end in zip([0] + [e + 1 for e in ends[:-1]], ends):
+        n = end - start + 1
+        total = sum(gamma ** i * float(f[start + i]) for i in range(n))
+        tail = 0.0 if ro.success[end] else gamma ** n * float(ro.reward_after[end]) / 10
+        assert total == pytest.approx(tail - float(ro.reward_before[start]) / 10, abs=1e-5)

@@ -27,6 +27,8 @@ class EvalConfig:
     steps: int = 0
     """Sampling steps K (0: the checkpoint's num_inference_timesteps)."""
     seed: int = 0
+    n_action_steps: int = 0
+    """Actions executed per chunk before re-planning (0: the checkpoint's n_action_steps)."""
     task: Optional[str] = None
     """Task(s) to evaluate (default: those the policy was trained on)."""
     output: Optional[str] = None
@@ -59,6 +61,10 @@ def run_eval(cfg: EvalConfig) -> dict:
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=cfg.device).eval()
+    n_exec = cfg.n_action_steps or policy.config.n_action_steps
+    if not 1 <= n_exec <= policy.config.action_chunk_size:
+        raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "
+                         f"got {cfg.n_action_steps}")
     trained = list(policy.config.extra.get("tasks") or [])
     tasks = resolve_tasks(cfg.task) if cfg.task else trained
     if not tasks:
@@ -80,14 +86,14 @@ def run_eval(cfg: EvalConfig) -> dict:
             print(f"[{task}] episode {done}/{total}: {'success' if success else 'failure'} "
                   f"(running success {np.mean(wins):.2f})", flush=True)
 
-        res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=policy.config.n_action_steps,
+        res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
                        num_envs=cfg.num_envs, task_index=index, progress=progress, record=cfg.plot)
         results.append(res)
         print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
     summary = {
         "checkpoint": str(cfg.checkpoint), "decoder_type": policy.config.decoder_type,
         "sampler": policy.resolve_sampler(cfg.sampler), "steps": steps or policy.config.num_inference_timesteps,
-        "episodes_per_task": cfg.episodes, "seed": cfg.seed,
+        "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],

@@ -50,6 +50,9 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup_steps: int = 100
     grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    """Ceiling of the decay of the weight average that `final/` holds (0: the raw weights); warmed
+    up as 1 − (1 + n)^(−3/4) so that the random initial weights fade within the first steps."""
     horizon: int = 16
     """Action chunk length H."""
     n_action_steps: int = 8
@@ -176,12 +179,24 @@ def save_final(out: Path, policy) -> Path:
     return final
 
 
+def weight_average(policy, decay: float) -> Optional[torch.optim.swa_utils.AveragedModel]:
+    """An exponential moving average of the policy's parameters (None when decay is 0)."""
+    if decay == 0:
+        return None
+
+    def update(averaged: list, current: list, num_averaged: torch.Tensor) -> None:
+        d = min(decay, 1.0 - (1.0 + float(num_averaged)) ** -0.75)
+        torch._foreach_lerp_(averaged, current, 1.0 - d)
+
+    return torch.optim.swa_utils.AveragedModel(policy, multi_avg_fn=update)
+
+
 def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen: torch.Generator,
-                    loss_gen: torch.Generator, history: list) -> Path:
+                    loss_gen: torch.Generator, history: list, ema=None) -> Path:
     return write_checkpoint(out, step, policy, {
         "step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
         "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
-        "history": history})
+        "history": history, "ema": None if ema is None else ema.state_dict()})
 
 
 def last_checkpoint(out: Path) -> Optional[Path]:
@@ -216,6 +231,8 @@ def _check(cfg: TrainConfig) -> None:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
     if cfg.eval_episodes < 0 or cfg.inference_steps < 0:
         raise ValueError("--eval-episodes/--inference-steps: expected >= 0")
+    if not 0 <= cfg.ema_decay < 1:
+        raise ValueError(f"--ema-decay: expected a decay in [0, 1), got {cfg.ema_decay}")
     if cfg.lr <= 0:
         raise ValueError(f"--lr: expected a positive learning rate, got {cfg.lr}")
 
@@ -249,6 +266,7 @@ def train(cfg: TrainConfig) -> Path:
     data_gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank)
     loss_gen = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + 500 + rank)
     start, history = 0, []
+    ema = weight_average(policy, cfg.ema_decay)
 
     if cfg.resume:
         ckpt = last_checkpoint(out)
@@ -265,6 +283,8 @@ def train(cfg: TrainConfig) -> Path:
             loss_gen.set_state(state["loss_gen"].to(loss_gen.get_state().device))
             _set_rng_state(state["rng"])
             start, history = state["step"], state["history"]
+            if ema is not None and state.get("ema") is not None:
+                ema.load_state_dict(state["ema"])
             if main:
                 print(f"resume: continuing from {ckpt} (step {start})", flush=True)
     elif main and last_checkpoint(out) is not None:
@@ -292,6 +312,8 @@ def train(cfg: TrainConfig) -> Path:
         torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip)
         optimizer.step()
         scheduler.step()
+        if ema is not None:
+            ema.update_parameters(policy)
         running.append(loss.detach())
         done = step + 1
         if done % cfg.log_every == 0 or done == cfg.steps:
@@ -306,12 +328,12 @@ def train(cfg: TrainConfig) -> Path:
         if bar is not None:
             bar.update(1)
         if main and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            save_checkpoint(out, done, policy, optimizer, scheduler, data_gen, loss_gen, history)
+            save_checkpoint(out, done, policy, optimizer, scheduler, data_gen, loss_gen, history, ema)
     if bar is not None:
         bar.close()
     final = out / FINAL
     if main:
-        save_final(out, policy)
+        save_final(out, policy if ema is None else ema.module)
         (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
         if history:
             plot_losses(history, out / "loss.png", f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")

@@ -47,10 +47,14 @@ class FinetuneConfig:
     """Task to fine-tune on (default: the checkpoint's task; required for multi-task checkpoints)."""
     env_steps: int = 100_000
     """Environment steps to collect (the run stops at the first iteration boundary past it)."""
+    max_cpu_minutes: float = 0.0
+    """Also stop at the first iteration boundary past this much CPU time of fine-tuning (0: no
+    limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
     num_envs: int = 8
     """Lockstep envs; each iteration runs one episode on each."""
-    max_episode_steps: int = 500
-    """Episode cap in env steps (Meta-World's is 500)."""
+    max_episode_steps: int = 200
+    """Cap of the training episodes in env steps (BC successes come within ~50–150 steps; failures
+    would spend the rest of Meta-World's 500 without a signal). Evaluation always runs 500."""
     seed: int = 0
     sde_steps: int = 10
     """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
@@ -67,8 +71,9 @@ class FinetuneConfig:
     gae_lambda: float = 0.95
     success_reward: float = 1.0
     """Reward on the decision that reaches success (the episode ends there)."""
-    dense_reward_scale: float = 0.0
-    """Weight of the env's dense reward summed over a decision's steps (0: success only)."""
+    shaping_scale: float = 1.0
+    """Weight of potential-based shaping γ·Φ(s′) − Φ(s), Φ = the env's dense reward / 10 ∈ [0, 1] and
+    Φ = 0 after success: it guides credit assignment without changing the optimal policy (0: success only)."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
     skip_last_steps: int = 1
@@ -109,7 +114,7 @@ def _check(cfg: FinetuneConfig) -> None:
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
-                 "skip_last_steps", "dense_reward_scale", "sac_updates_per_decision"):
+                 "skip_last_steps", "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     if cfg.max_episode_steps > 500:
@@ -163,6 +168,14 @@ def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def shaping(ro, gamma: float) -> torch.Tensor:
+    """γ·Φ(s′) − Φ(s) per decision [N], Φ = env reward / 10 (Meta-World's rewards lie in [0, 10]),
+    Φ(terminal) = 0. Summed over an episode it telescopes to −Φ(s₀) (plus the bootstrapped
+    tail at a time limit), so the policy it favours is the one the success reward favours."""
+    phi_next = torch.where(ro.success, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
+    return gamma * phi_next - ro.reward_before / 10
+
+
 def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, reduce: str, squash: bool):
     """The rollout's act function: one SDE chain per env; records the chain [K+1, H, D], its
     grid and per-step log-probs [K] (for PPO) and the executed actions (for SAC's buffer).
@@ -185,6 +198,7 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
 def finetune(cfg: FinetuneConfig) -> Path:
     """Run the fine-tuning; returns the `final/` checkpoint directory."""
     from ..envs import evaluate, make_env
+    from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
     _check(cfg)
     out = Path(cfg.output_dir)
@@ -242,7 +256,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
         for sampler in ("sde", "ode"):
             fn = make_policy_fn(policy, num_tasks, sampler, cfg.sde_steps, torch.Generator().manual_seed(cfg.seed))
             res = evaluate(fn, task, episodes=cfg.eval_episodes, seed=cfg.seed, n_action_steps=n_exec,
-                           max_steps=cfg.max_episode_steps, num_envs=min(cfg.num_envs, cfg.eval_episodes),
+                           max_steps=MAX_EPISODE_STEPS, num_envs=min(cfg.num_envs, cfg.eval_episodes),
                            task_index=task_index)
             row[f"success_{sampler}"] = res["success_rate"]
         evals.append(row)
@@ -254,14 +268,20 @@ def finetune(cfg: FinetuneConfig) -> Path:
     envs = [make_env(task, seed=cfg.seed * 1000 + i) for i in range(cfg.num_envs)]
     trained_steps = cfg.sde_steps - cfg.skip_last_steps
     t0 = time.perf_counter()
-    while env_steps < cfg.env_steps:
+    cpu0 = time.process_time() - (history[-1].get("cpu_s", 0.0) if history else 0.0)   # carried over a resume
+
+    def out_of_budget() -> bool:
+        return env_steps >= cfg.env_steps or (cfg.max_cpu_minutes > 0 and
+                                              time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
+
+    while not out_of_budget():
         seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * cfg.num_envs + i) % TRAIN_LAYOUT_SPAN
                  for i in range(cfg.num_envs)]
         policy.eval()
         act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
         ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps)
         rec = ro.records
-        rewards = cfg.success_reward * ro.success.float() + cfg.dense_reward_scale * ro.env_rewards
+        rewards = cfg.success_reward * ro.success.float() + cfg.shaping_scale * shaping(ro, cfg.gamma)
         with torch.no_grad():
             logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
                                                 rec["grid"][0], cfg.logprob_reduce)
@@ -291,7 +311,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
         row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
                "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
                "decisions": len(rewards), "sigma_mult": mult, "kl_bc": kl_rollout, **stats,
-               "wall_s": time.perf_counter() - t0}
+               "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
         history.append(row)
@@ -301,7 +321,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
               f"σ×{mult:.3f} kl_bc {kl_rollout:.4f}{ratio}", flush=True)
         if cfg.eval_every and iteration % cfg.eval_every == 0:
             run_eval()
-        if iteration % cfg.checkpoint_every == 0 or env_steps >= cfg.env_steps:
+        if iteration % cfg.checkpoint_every == 0 or out_of_budget():
             state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
                      "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
                      "gen": gen.get_state(), "rng": _rng_state()}

@@ -3,7 +3,8 @@
 Each call runs one full episode per env, from layouts given by seeds (so an iteration is
 reproducible and a resumed run re-collects exactly what it would have). A decision
 executes the chunk's first `n_action_steps` actions (clipped to [−1, 1]); its reward is the
-sum of the env rewards over the steps executed, and the episode ends at the first success
+sum of the env rewards over the steps executed (the env reward of the last step before and
+of the last step of the decision are kept too: they serve as potentials for shaping), and the episode ends at the first success
 (terminal) or at `max_steps` (truncation: the critic bootstraps there). Rows are returned
 episode by episode, in time order, which is what GAE needs.
 """
@@ -30,6 +31,8 @@ class Rollout:
     progress: Tensor        # [N] env steps done before the decision / max_steps
     next_progress: Tensor   # [N]
     env_rewards: Tensor     # [N] sum of env rewards over the executed steps
+    reward_before: Tensor   # [N] env reward of the step before the decision (first decision: its first step)
+    reward_after: Tensor    # [N] env reward of the decision's last step
     success: Tensor         # [N] bool: success reached during this decision (terminal)
     last: Tensor            # [N] bool: the episode ended after this decision
     records: dict           # name -> Tensor [N, ...]
@@ -47,16 +50,19 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
     active = list(range(n))
     rows: list[list[dict]] = [[] for _ in range(n)]
     returns, wins = [0.0] * n, [False] * n
+    latest: list = [None] * n                   # env reward of each env's latest step
     while active:
         progress = (steps[active] / max_steps).astype(np.float32)
         chunks, record = act(obs[active], progress)
         chunks = np.clip(np.asarray(chunks)[:, :n_action_steps], -1.0, 1.0)
         still = []
         for j, e in enumerate(active):
-            state, reward, success = obs[e].copy(), 0.0, False
+            state, reward, success, before = obs[e].copy(), 0.0, False, latest[e]
             for action in chunks[j]:
                 o, r, _, _, info = envs[e].step(action)
                 obs[e], steps[e], reward = o, steps[e] + 1, reward + float(r)
+                latest[e] = float(r)
+                before = latest[e] if before is None else before
                 success = bool(info["success"])
                 if success or steps[e] >= max_steps:
                     break
@@ -64,17 +70,19 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
             wins[e] = wins[e] or success
             last = success or steps[e] >= max_steps
             rows[e].append({"state": state, "next_state": obs[e].copy(), "progress": progress[j],
-                            "next_progress": steps[e] / max_steps, "reward": reward, "success": success,
+                            "next_progress": steps[e] / max_steps, "reward": reward, "reward_before": before,
+                            "reward_after": latest[e], "success": success,
                             "last": last, **{k: v[j] for k, v in record.items()}})
             if not last:
                 still.append(e)
         active = still
     flat = [r for ep in rows for r in ep]
     keys = [k for k in flat[0] if k not in ("state", "next_state", "progress", "next_progress", "reward",
-                                            "success", "last")]
+                                            "reward_before", "reward_after", "success", "last")]
     col = lambda k, dt=torch.float32: torch.as_tensor(np.array([r[k] for r in flat]), dtype=dt)  # noqa: E731
     return Rollout(states=col("state"), next_states=col("next_state"), progress=col("progress"),
                    next_progress=col("next_progress"), env_rewards=col("reward"),
+                   reward_before=col("reward_before"), reward_after=col("reward_after"),
                    success=col("success", torch.bool), last=col("last", torch.bool),
                    records={k: torch.stack([r[k] for r in flat]) for k in keys},
                    episode_returns=returns, episode_success=wins,

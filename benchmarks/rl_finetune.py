@@ -1,0 +1,135 @@
+"""RL fine-tuning benchmark: behaviour-clone a policy from 3 demonstrations, then fine-tune it
+with `action-decoder finetune` under a CPU-time budget, and compare success on the same 50
+evaluation layouts before and after.
+
+    python -m benchmarks.rl_finetune --jobs 2                                  # the default grid
+    python -m benchmarks.rl_finetune --tasks metaworld/push --decoders flow_matching --cpu-minutes 10
+
+Each (task, decoder) run lives in its own directory under --runs; finished steps are skipped
+and an interrupted fine-tuning resumes, so the grid can be stopped and continued. The table
+and a plot of the learning curves are written to docs/benchmarks/ from whatever runs exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+CLI = [sys.executable, "-m", "action_decoder.cli"]
+
+
+def _run(cmd: list[str], log: Path) -> None:
+    with open(log, "a") as fh:
+        fh.write("$ " + " ".join(cmd) + "\n")
+        fh.flush()
+        subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
+                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def _eval(checkpoint: Path, out: Path, sampler: str, args, log: Path) -> None:
+    if not out.is_file():
+        _run([*CLI, "eval", "--checkpoint", str(checkpoint), "--episodes", str(args.episodes), "--sampler", sampler,
+              "--seed", "0", "--output", str(out)], log)
+
+
+def run_one(task: str, decoder: str, args) -> None:
+    run = Path(args.runs) / f"{task.split('/')[-1]}_{decoder}"
+    run.mkdir(parents=True, exist_ok=True)
+    log = run / "log.txt"
+    bc, ft = run / "bc", run / "ft"
+    if not (bc / "final" / "model.safetensors").is_file():
+        resume = ["--resume"] if (bc / "checkpoints" / "last").is_file() else []
+        _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos), "--steps",
+              str(args.bc_steps), "--hidden-size", "64", "--num-layers", "2", "--seed", "0", "--output-dir", str(bc),
+              "--eval-episodes", "0", "--no-progress", *resume], log)
+    _eval(bc / "final", run / "bc_eval.json", "ode", args, log)
+    if not (ft / "final" / "model.safetensors").is_file():
+        resume = ["--resume"] if (ft / "checkpoints" / "last").is_file() else []
+        _run([*CLI, "finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(ft), "--algo", args.algo,
+              "--env-steps", "10000000", "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
+              *args.finetune_args, *resume], log)
+    _eval(ft / "final", run / "ft_eval_sde.json", "sde", args, log)
+    _eval(ft / "final", run / "ft_eval_ode.json", "ode", args, log)
+
+
+def collect(runs: Path) -> list[dict]:
+    rows = []
+    for run in sorted(p for p in runs.iterdir() if (p / "ft_eval_ode.json").is_file()):
+        bc = json.loads((run / "bc_eval.json").read_text())
+        sde = json.loads((run / "ft_eval_sde.json").read_text())
+        ode = json.loads((run / "ft_eval_ode.json").read_text())
+        log = json.loads((run / "ft" / "finetune_log.json").read_text())
+        last = log["history"][-1]
+        rows.append({"run": run.name, "task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
+                     "bc": bc["success_rate"], "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
+                     "cpu_min": last.get("cpu_s", last["wall_s"]) / 60, "env_steps": last["env_steps"],
+                     "evals": log["evals"], "history": log["history"]})
+    return rows
+
+
+def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
+    lines = ["| task | decoder | algo | BC (ODE) | fine-tuned (SDE) | fine-tuned (ODE) | gain (best) | CPU min | env steps |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        gain = 100 * (max(r["ft_sde"], r["ft_ode"]) - r["bc"])
+        lines.append(f"| {r['task']} | {r['decoder']} | {r['algo']} | {100 * r['bc']:.0f} | {100 * r['ft_sde']:.0f} | "
+                     f"{100 * r['ft_ode']:.0f} | {gain:+.0f} | {r['cpu_min']:.0f} | {r['env_steps']} |")
+    text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
+            f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
+            + "\n".join(lines) + "\n")
+    table.parent.mkdir(parents=True, exist_ok=True)
+    table.write_text(text)
+    if rows:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, len(rows), figsize=(3.6 * len(rows), 3.2), squeeze=False)
+        for ax, r in zip(axes[0], rows):
+            cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in r["history"]}
+            for sampler in ("sde", "ode"):
+                pts = [(cpu.get(e["iteration"], 0.0), e[f"success_{sampler}"]) for e in r["evals"]]
+                ax.plot(*zip(*pts), marker="o", label=f"eval {sampler} (20 ep.)")
+            ax.axhline(r["bc"], color="gray", ls="--", label=f"BC, {args.episodes} ep.")
+            ax.set(title=f"{r['task']} {r['decoder']}", xlabel="CPU minutes", ylabel="success", ylim=(-0.02, 1.02))
+            ax.grid(alpha=0.3)
+        axes[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(plot, dpi=110)
+        plt.close(fig)
+    return text
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", default="metaworld/push,metaworld/reach,metaworld/pick-place")
+    p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
+    p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
+    p.add_argument("--demos", type=int, default=3)
+    p.add_argument("--bc-steps", type=int, default=2000)
+    p.add_argument("--cpu-minutes", type=float, default=45)
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
+    p.add_argument("--runs", default="runs/rl_finetune")
+    p.add_argument("--table", default="docs/benchmarks/rl_finetune.md")
+    p.add_argument("--plot", default="docs/benchmarks/rl_finetune.png")
+    p.add_argument("finetune_args", nargs=argparse.REMAINDER, help="extra `finetune` options after --")
+    args = p.parse_args(argv)
+    args.finetune_args = [a for a in args.finetune_args if a != "--"]
+    from action_decoder.envs import resolve_tasks
+
+    grid = [(f"metaworld/{t}", d) for t in resolve_tasks(args.tasks) for d in args.decoders]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        for fut in [pool.submit(run_one, *job, args) for job in grid]:
+            fut.result()
+    print(write_report(collect(Path(args.runs)), Path(args.table), Path(args.plot), args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,23 @@
+"""Training pieces below the CLI: the weight average that `final/` holds."""
+
+import pytest
+import torch
+
+from action_decoder.train import weight_average
+
+
+def test_weight_average_starts_at_the_weights_warms_up_then_caps():
+    net = torch.nn.Linear(1, 1, bias=False)
+    ema, ceiling = weight_average(net, 0.8), 0.8
+    ref = None
+    for n, w in enumerate([1.0, 5.0, -2.0, 3.0, 7.0, 0.5, 4.0, 2.0, 9.0, 1.0, 6.0, 3.0]):
+        net.weight.data.fill_(w)
+        ema.update_parameters(net)
+        d = min(ceiling, 1 - (1 + n) ** -0.75)
+        ref = w if ref is None else d * ref + (1 - d) * w
+        assert float(ema.module.weight) == pytest.approx(ref, rel=1e-6)
+    assert 1 - (1 + 11) ** -0.75 > ceiling, "the ceiling was never reached: the test would not check it"
+
+
+def test_weight_average_off():
+    assert weight_average(torch.nn.Linear(1, 1), 0.0) is None
