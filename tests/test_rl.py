@@ -14,7 +14,7 @@ from action_decoder.envs import make_env
 from action_decoder.cli import main
 from action_decoder.rl.critics import ValueNet
 from action_decoder.rl.finetune import chain_actor, shaping
-from action_decoder.rl.ppo import gae, ppo_update
+from action_decoder.rl.ppo import gae, group_advantages, ppo_update
 from action_decoder.rl.rollout import collect
 from action_decoder.rl.sac import actor_sample
 from action_decoder.rl.sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
@@ -183,3 +183,17 @@ def test_shaping_is_potential_based_and_telescopes():
         total = sum(gamma ** i * float(f[start + i]) for i in range(n))
         tail = 0.0 if ro.success[end] else gamma ** n * float(ro.reward_after[end]) / 10
         assert total == pytest.approx(tail - float(ro.reward_before[start]) / 10, abs=1e-5)
+
+
+def test_group_advantages_compare_episodes_of_one_layout():
+    # Four episodes (rows stored episode by episode), two layouts of two episodes each.
+    rewards = torch.tensor([0.0, 1.0, 0.2, 0.0, -0.1, 2.0, 0.5, 1.0])
+    last = torch.tensor([0, 1, 0, 0, 1, 1, 0, 1], dtype=torch.bool)
+    gamma = 0.5
+    returns = [0.0 + 0.5 * 1.0, 0.2 + 0.0 - 0.25 * 0.1, 2.0, 0.5 + 0.5 * 1.0]
+    means = [(returns[0] + returns[1]) / 2] * 2 + [(returns[2] + returns[3]) / 2] * 2
+    per_episode = [r - m for r, m in zip(returns, means)]
+    expected = torch.tensor([per_episode[e] for e in (0, 0, 1, 1, 1, 2, 3, 3)])
+    assert torch.allclose(group_advantages(rewards, last, gamma, 2), expected)
+    with pytest.raises(ValueError, match="group_size"):
+        group_advantages(rewards, last, gamma, 3)

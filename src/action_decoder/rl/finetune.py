@@ -25,7 +25,7 @@ from ..policy import ActionDecoderPolicy
 from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save_final, task_context,
                      write_checkpoint)
 from .critics import TwinQ, ValueNet
-from .ppo import gae, k3_kl, ppo_update
+from .ppo import gae, group_advantages, k3_kl, ppo_update
 from .rollout import collect
 from .sac import ReplayBuffer, make_target, sac_update
 from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
@@ -52,6 +52,9 @@ class FinetuneConfig:
     limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
     num_envs: int = 8
     """Lockstep envs; each iteration runs one episode on each."""
+    group_size: int = 1
+    """PPO: episodes per training layout. Above 1, advantages are GRPO-style (an episode's return
+    against the others on its layout, see `ppo.group_advantages`) instead of the critic's GAE."""
     max_episode_steps: int = 200
     """Cap of the training episodes in env steps (BC successes come within ~50–150 steps; failures
     would spend the rest of Meta-World's 500 without a signal). Evaluation always runs 500."""
@@ -71,9 +74,11 @@ class FinetuneConfig:
     gae_lambda: float = 0.95
     success_reward: float = 1.0
     """Reward on the decision that reaches success (the episode ends there)."""
-    shaping_scale: float = 1.0
-    """Weight of potential-based shaping γ·Φ(s′) − Φ(s), Φ = the env's dense reward / 10 ∈ [0, 1] and
-    Φ = 0 after success: it guides credit assignment without changing the optimal policy (0: success only)."""
+    shaping_scale: float = 0.1
+    """Weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
+    Φ = 0 after success. It guides credit assignment without changing the optimal policy (0: success
+    only). Keep k well below `success_reward`: a truncated episode that hovers at the goal earns
+    ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
     skip_last_steps: int = 1
@@ -106,7 +111,7 @@ class FinetuneConfig:
 
 
 def _check(cfg: FinetuneConfig) -> None:
-    for name in ("env_steps", "num_envs", "max_episode_steps", "sde_steps", "ppo_epochs", "minibatch_size",
+    for name in ("env_steps", "num_envs", "group_size", "max_episode_steps", "sde_steps", "ppo_epochs", "minibatch_size",
                  "sac_batch_size", "buffer_size", "checkpoint_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
@@ -119,6 +124,8 @@ def _check(cfg: FinetuneConfig) -> None:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     if cfg.max_episode_steps > 500:
         raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
+    if cfg.num_envs % cfg.group_size:
+        raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, got {cfg.group_size}")
     if cfg.skip_last_steps >= cfg.sde_steps:
         raise ValueError(f"--skip-last-steps: expected fewer than --sde-steps={cfg.sde_steps} so that some "
                          f"denoising step is trained, got {cfg.skip_last_steps}")
@@ -275,7 +282,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
                                               time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
 
     while not out_of_budget():
-        seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * cfg.num_envs + i) % TRAIN_LAYOUT_SPAN
+        layouts = cfg.num_envs // cfg.group_size
+        seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * layouts + i // cfg.group_size) % TRAIN_LAYOUT_SPAN
                  for i in range(cfg.num_envs)]
         policy.eval()
         act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
@@ -293,10 +301,12 @@ def finetune(cfg: FinetuneConfig) -> Path:
                 values = critic(norm(ro.states), ro.progress)
                 next_values = critic(norm(ro.next_states), ro.next_progress)
             adv, ret = gae(rewards, values, next_values, ro.success, ro.last, cfg.gamma, cfg.gae_lambda)
+            if cfg.group_size > 1:
+                adv = group_advantages(rewards, ro.last, cfg.gamma, cfg.group_size)
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
                     "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret}
             stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                               update_policy=iteration >= cfg.critic_warmup_iters)
+                               update_policy=cfg.group_size > 1 or iteration >= cfg.critic_warmup_iters)
         else:
             buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
                         "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.success})

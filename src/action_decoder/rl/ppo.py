@@ -38,6 +38,24 @@ def gae(rewards: Tensor, values: Tensor, next_values: Tensor, terminal: Tensor, 
     return adv, adv + values
 
 
+def group_advantages(rewards: Tensor, last: Tensor, gamma: float, group_size: int) -> Tensor:
+    """GRPO-style advantages [N]: each episode's discounted return minus the mean return of its
+    group (`group_size` consecutive episodes played on the same layout), given to every decision
+    of the episode. Comparing episodes of one layout removes the layout's difficulty from the
+    signal, which a critic learnt from a few hundred episodes does poorly. Rows must be stored
+    episode by episode; scaling is left to the per-iteration normalisation of the update."""
+    ends = last.long()
+    episode = torch.cumsum(ends, 0) - ends                                    # [N] episode index
+    n_episodes = int(episode[-1]) + 1
+    if n_episodes % group_size:
+        raise ValueError(f"group_size: {n_episodes} episodes do not split into groups of {group_size}")
+    starts = torch.nonzero(torch.cat([torch.ones(1, dtype=torch.bool), last[:-1]])).flatten()   # [E]
+    position = torch.arange(len(rewards)) - starts[episode]                  # decision index within its episode
+    ret = torch.zeros(n_episodes, dtype=rewards.dtype).index_add_(0, episode, gamma ** position * rewards)
+    groups = ret.view(-1, group_size)
+    return (groups - groups.mean(1, keepdim=True)).flatten()[episode]
+
+
 def k3_kl(log_ratio_ref: Tensor) -> Tensor:
     """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ."""
     return torch.expm1(log_ratio_ref) - log_ratio_ref
