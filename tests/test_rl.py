@@ -131,7 +131,8 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     ckpt, out = tmp_path / "bc", tmp_path / "ft"
     _bc().save_pretrained(ckpt)
     args = ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30", "--num-envs", "2",
-            "--max-episode-steps", "12", "--sde-steps", "3", "--eval-episodes", "1", "--minibatch-size", "4",
+            "--max-episode-steps", "12", "--sde-steps", "3", "--skip-last-steps", "1", "--eval-episodes", "1",
+            "--minibatch-size", "4",
             "--critic-warmup-iters", "0", "--checkpoint-every", "1", "--kl-coef", "0.01"]
     assert main(args) == 0
     log = json.loads((out / "finetune_log.json").read_text())

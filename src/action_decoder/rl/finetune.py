@@ -50,7 +50,7 @@ class FinetuneConfig:
     max_cpu_minutes: float = 0.0
     """Also stop at the first iteration boundary past this much CPU time of fine-tuning (0: no
     limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
-    num_envs: int = 8
+    num_envs: int = 32
     """Lockstep envs; each iteration runs one episode on each."""
     group_size: int = 1
     """PPO: episodes per training layout. Above 1, advantages are GRPO-style (an episode's return
@@ -61,12 +61,12 @@ class FinetuneConfig:
     seed: int = 0
     sde_steps: int = 10
     """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
-    sigma: float = 0.5
+    sigma: float = 1.0
     """Scale a of the exploring schedule σ(t) = a·√((1 − t)/max(t, 0.1))."""
     learn_sigma: bool = True
     """Learn a multiplier of σ(t) (starts at 1)."""
-    lr: float = 3e-5
-    """Velocity network learning rate."""
+    lr: float = 1e-4
+    """Velocity network learning rate (3e-4 jumps by several nats of KL in one step; 3e-5 barely moves)."""
     sigma_lr: float = 3e-3
     critic_lr: float = 1e-3
     gamma: float = 0.99
@@ -81,11 +81,12 @@ class FinetuneConfig:
     ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
-    skip_last_steps: int = 1
-    """Denoising steps at the end of the chain left out of the PPO/KL objective (their density is huge)."""
+    skip_last_steps: int = 5
+    """Denoising steps at the end of the chain left out of the PPO/KL objective: their σ is smallest
+    and their density sharpest (with K = 10, training the first 5 narrowed the ratios from [0.01, 12] to [0.3, 2.6])."""
     clip_eps: float = 0.2
     ppo_epochs: int = 4
-    minibatch_size: int = 128
+    minibatch_size: int = 512
     target_kl: float = 0.05
     """PPO: stop an iteration's epochs when the approximate KL to the rollout policy exceeds 1.5×this."""
     vf_coef: float = 0.5
