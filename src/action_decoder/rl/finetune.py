@@ -282,8 +282,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
         return env_steps >= cfg.env_steps or (cfg.max_cpu_minutes > 0 and
                                               time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
 
+    layouts = cfg.num_envs // cfg.group_size          # distinct training layouts per iteration
     while not out_of_budget():
-        layouts = cfg.num_envs // cfg.group_size
         seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * layouts + i // cfg.group_size) % TRAIN_LAYOUT_SPAN
                  for i in range(cfg.num_envs)]
         policy.eval()
