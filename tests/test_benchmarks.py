@@ -64,3 +64,23 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     mlp_baseline.write_evals(res, tmp_path / "runs" / "reach-v3_s0_mlp_baseline", (2, 1))
     table = metaworld_bc.collect(tmp_path / "runs")
     assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
+
+
+def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
+    monkeypatch.syspath_prepend(str(ROOT))
+    import torch
+
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+    from benchmarks.sde_exploration import main
+
+    cfg = DecoderConfig(decoder_type="flow_matching", state_dim=39, action_dim=4, action_chunk_size=4, n_action_steps=2,
+                        hidden_size=16, num_hidden_layers=1, num_attention_heads=2, num_key_value_heads=1,
+                        extra={"tasks": ["reach-v3"]})
+    torch.manual_seed(0)
+    ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "p")
+    assert main(["--checkpoint", str(tmp_path / "p"), "--layouts", "2", "--samples", "4", "--steps", "4"]) == 0
+    rows = [line.split("|")[2:-1] for line in capsys.readouterr().out.splitlines() if line.startswith("| explore")
+            or line.startswith("| fixed")]
+    assert len(rows) == 4
+    for all_steps, first, last, last1 in [[float(x) for x in r] for r in rows]:
+        assert all_steps > 0 and 0 <= first < all_steps and last1 <= last * 1.5 + 1e-6

@@ -13,7 +13,7 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, ExploringSigma, 
 from action_decoder.envs import make_env
 from action_decoder.cli import main
 from action_decoder.rl.critics import ValueNet
-from action_decoder.rl.finetune import chain_actor, shaping
+from action_decoder.rl.finetune import FinetuneConfig, chain_actor, shaping
 from action_decoder.rl.ppo import gae, group_advantages, ppo_update
 from action_decoder.rl.rollout import collect
 from action_decoder.rl.sac import actor_sample
@@ -56,7 +56,7 @@ def test_ratio_is_one_on_policy_and_checked(decoder):
     data = {"states": batch["state"], "state_norm": batch["state"], "progress": torch.zeros(6),
             "chain": res.chain, "grid": res.grid, "logp_old": res.step_log_probs, "logp_ref": res.step_log_probs,
             "adv": torch.randn(6, generator=gen), "ret": torch.zeros(6)}
-    cfg = SimpleNamespace(skip_last_steps=1, ppo_epochs=1, minibatch_size=6, logprob_reduce="mean", ratio_tol=1e-4,
+    cfg = SimpleNamespace(trained_steps=2, ppo_epochs=1, minibatch_size=6, logprob_reduce="mean", ratio_tol=1e-4,
                           clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0)
     opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=1e-2)
     stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, gen)
@@ -131,7 +131,7 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     ckpt, out = tmp_path / "bc", tmp_path / "ft"
     _bc().save_pretrained(ckpt)
     args = ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30", "--num-envs", "2",
-            "--max-episode-steps", "12", "--sde-steps", "3", "--skip-last-steps", "1", "--eval-episodes", "1",
+            "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "1",
             "--minibatch-size", "4",
             "--critic-warmup-iters", "0", "--checkpoint-every", "1", "--kl-coef", "0.01"]
     assert main(args) == 0
@@ -146,7 +146,8 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     assert main(["eval", "--checkpoint", str(out / "final"), "--episodes", "1", "--num-envs", "1"]) == 0
     assert "success_rate=" in capsys.readouterr().out
     cfg = json.loads((out / "final" / "config.json").read_text())
-    assert cfg["flow_sde_use"] and cfg["flow_sde_mode"] == "explore" and cfg["flow_sde_learn_sigma"]
+    assert cfg["flow_sde_use"] and cfg["flow_sde_learn_sigma"]
+    assert cfg["flow_sde_mode"] == FinetuneConfig.sigma_schedule
     # SAC path, one short run, stopped by the CPU budget after its first iteration
     assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *args[5:], "--sac-batch-size", "4",
                  "--env-steps", "100000", "--max-cpu-minutes", "1e-4"]) == 0
@@ -161,9 +162,9 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert "flow_matching or mean_flow" in capsys.readouterr().err
     ok = tmp_path / "fm"
     _bc().save_pretrained(ok)
-    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--skip-last-steps",
-                 "10"]) == 2
-    assert "--skip-last-steps" in capsys.readouterr().err
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--trained-steps",
+                 "11"]) == 2
+    assert "--trained-steps" in capsys.readouterr().err
 
 
 def test_shaping_is_potential_based_and_telescopes():
@@ -182,7 +183,7 @@ def test_shaping_is_potential_based_and_telescopes():
     for start, end in zip([0] + [e + 1 for e in ends[:-1]], ends):
         n = end - start + 1
         total = sum(gamma ** i * float(f[start + i]) for i in range(n))
-        tail = 0.0 if ro.success[end] else gamma ** n * float(ro.reward_after[end]) / 10
+        tail = 0.0 if ro.terminal[end] else gamma ** n * float(ro.reward_after[end]) / 10
         assert total == pytest.approx(tail - float(ro.reward_before[start]) / 10, abs=1e-5)
 
 
@@ -203,13 +204,12 @@ def test_group_advantages_compare_episodes_of_one_layout():
 def test_ppo_on_chains_learns_a_contextual_bandit():
     """The whole PPO path (SDE chains, re-scoring, clipped per-step ratios) on a one-decision task
     whose best chunk is all ones: the mean action must move towards 1 and the reward rise."""
-    from action_decoder.rl.finetune import FinetuneConfig
 
     torch.manual_seed(0)
     cfg_d = DecoderConfig(decoder_type="flow_matching", state_dim=8, action_dim=2, action_chunk_size=4,
                           n_action_steps=4, hidden_size=32, num_hidden_layers=1, num_attention_heads=2,
                           num_key_value_heads=1)
-    cfg = FinetuneConfig(checkpoint="unused", lr=3e-5, skip_last_steps=5, minibatch_size=256, sigma=1.0)
+    cfg = FinetuneConfig(checkpoint="unused", lr=3e-5, trained_steps=5, minibatch_size=256, sigma=1.0)
     policy = finetune_policy(ActionDecoderPolicy(cfg_d), cfg.sigma, True, cfg.sde_steps)
     critic = ValueNet(8)
     opt = torch.optim.Adam([{"params": list(policy.model.parameters()), "lr": cfg.lr},
@@ -229,3 +229,45 @@ def test_ppo_on_chains_learns_a_contextual_bandit():
         stats = ppo_update(policy, critic, opt, lambda st: {"state": st}, data, cfg, gen)
         assert stats["ratio_dev_before_update"] <= cfg.ratio_tol
     assert means[-1] > means[0] + 0.12 and rewards[-1] > rewards[0] + 0.2, (means, rewards)
+
+
+def test_rollout_runs_past_success_for_the_dense_reward():
+    """With stop_on_success=False an episode that succeeds keeps going to the time limit, nothing
+    is terminal (the critic bootstraps), and its success is still counted; with True it ends there."""
+    from action_decoder.envs import expert_policy
+
+    expert = expert_policy("reach-v3")
+
+    def act(states, progress):
+        return expert(states)[:, None].repeat(4, 1), {}
+
+    for stop in (True, False):
+        ro = collect([make_env("reach-v3", seed=0)], [5], act, n_action_steps=4, max_steps=200, stop_on_success=stop)
+        assert ro.episode_success == [True]
+        assert bool(ro.terminal.any()) is stop and bool(ro.success[-1])
+        assert (ro.env_steps < 200) is stop
+        assert torch.equal(torch.nonzero(ro.last).flatten(), torch.tensor([len(ro.last) - 1]))
+
+
+@pytest.mark.parametrize("reduce", ["sum", "mean"])
+def test_last_step_log_prob_keeps_only_executed_rows(reduce):
+    """The last step's density counts only the executed rows (nothing depends on the others), every
+    earlier step counts the whole chunk, and sampling and re-scoring agree (PPO ratio 1)."""
+    from action_decoder.rl.sde_policy import reduce_step_log_probs
+
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=3)
+    batch = _batch()
+    with torch.no_grad():
+        res = sample_chain(policy, batch, 3, torch.Generator().manual_seed(0), reduce=reduce, executed=2)
+        full = policy.chain_log_prob(batch, res.chain, res.grid, reduce="none")            # [B, K, H, D]
+    agg = (lambda x: x.sum((-2, -1))) if reduce == "sum" else (lambda x: x.mean((-2, -1)))
+    assert torch.allclose(res.step_log_probs[:, :-1], agg(full[:, :-1]), atol=1e-5)
+    assert torch.allclose(res.step_log_probs[:, -1], agg(full[:, -1, :2]), atol=1e-5)
+    assert torch.allclose(reduce_step_log_probs(full, reduce), agg(full), atol=1e-6)
+    moved = res.chain.clone()
+    moved[:, -1, 2:] += 3.0                                    # unexecuted rows of the final chunk
+    lp = rescore_chain(policy, batch, moved, res.grid, reduce, executed=2)
+    assert torch.allclose(lp, res.step_log_probs, atol=1e-5)
+    moved[:, -1, :2] += 0.1                                    # executed rows do count
+    assert not torch.allclose(rescore_chain(policy, batch, moved, res.grid, reduce, executed=2)[:, -1],
+                              res.step_log_probs[:, -1], atol=1e-3)

@@ -25,7 +25,7 @@ from ..policy import ActionDecoderPolicy
 from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save_final, task_context,
                      write_checkpoint)
 from .critics import TwinQ, ValueNet
-from .ppo import gae, group_advantages, k3_kl, ppo_update
+from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, make_target, sac_update
 from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
@@ -61,8 +61,12 @@ class FinetuneConfig:
     seed: int = 0
     sde_steps: int = 10
     """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
-    sigma: float = 1.0
-    """Scale a of the exploring schedule σ(t) = a·√((1 − t)/max(t, 0.1))."""
+    sigma_schedule: Literal["explore", "fixed"] = "fixed"
+    """σ(t): "fixed" = a at every t; "explore" = a·√((1 − t)/max(t, 0.1)) (Flow-GRPO). On a 3-demo
+    reach policy, fixed a = 0.5 gives executed actions 3× the variance of explore a = 1 (whose
+    exploration is 0.02–0.04 in env units) and no step with a much sharper density than the others."""
+    sigma: float = 0.5
+    """Scale a of the σ(t) schedule."""
     learn_sigma: bool = True
     """Learn a multiplier of σ(t) (starts at 1)."""
     lr: float = 1e-4
@@ -72,6 +76,11 @@ class FinetuneConfig:
     gamma: float = 0.99
     """Discount per decision (one chunk)."""
     gae_lambda: float = 0.95
+    reward: Literal["dense", "success"] = "dense"
+    """"dense": the env's reward averaged over the chunk's steps / 10 ∈ [0, 1], episodes running past
+    success to `max_episode_steps` (the protocol of Meta-World's RL baselines: its rewards are largest
+    in the success region). "success": `success_reward` on the decision that succeeds, where the
+    episode ends, plus `shaping_scale` potential-based shaping."""
     success_reward: float = 1.0
     """Reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
@@ -81,9 +90,11 @@ class FinetuneConfig:
     ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
-    skip_last_steps: int = 5
-    """Denoising steps at the end of the chain left out of the PPO/KL objective: their σ is smallest
-    and their density sharpest (with K = 10, training the first 5 narrowed the ratios from [0.01, 12] to [0.3, 2.6])."""
+    trained_steps: int = 10
+    """The last N denoising steps enter the PPO/KL objective. Their noise is what moves the executed
+    actions: on a 3-demo reach policy the last 5 of 10 steps carry 95 % of the executed-action
+    variance and the last one 71 %, while the first 5 carry 5 % (the velocity field contracts early
+    noise back onto the data), so crediting early steps gives PPO almost no signal."""
     clip_eps: float = 0.2
     ppo_epochs: int = 4
     minibatch_size: int = 512
@@ -120,16 +131,15 @@ def _check(cfg: FinetuneConfig) -> None:
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
-                 "skip_last_steps", "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
+                 "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     if cfg.max_episode_steps > 500:
         raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
     if cfg.num_envs % cfg.group_size:
         raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, got {cfg.group_size}")
-    if cfg.skip_last_steps >= cfg.sde_steps:
-        raise ValueError(f"--skip-last-steps: expected fewer than --sde-steps={cfg.sde_steps} so that some "
-                         f"denoising step is trained, got {cfg.skip_last_steps}")
+    if not 1 <= cfg.trained_steps <= cfg.sde_steps:
+        raise ValueError(f"--trained-steps: expected between 1 and --sde-steps={cfg.sde_steps}, got {cfg.trained_steps}")
     if not (0 < cfg.gamma <= 1 and 0 <= cfg.gae_lambda <= 1 and 0 < cfg.tau <= 1):
         raise ValueError("--gamma/--gae-lambda/--tau: expected gamma, tau in (0, 1] and gae-lambda in [0, 1]")
 
@@ -180,8 +190,15 @@ def shaping(ro, gamma: float) -> torch.Tensor:
     """γ·Φ(s′) − Φ(s) per decision [N], Φ = env reward / 10 (Meta-World's rewards lie in [0, 10]),
     Φ(terminal) = 0. Summed over an episode it telescopes to −Φ(s₀) (plus the bootstrapped
     tail at a time limit), so the policy it favours is the one the success reward favours."""
-    phi_next = torch.where(ro.success, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
+    phi_next = torch.where(ro.terminal, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
     return gamma * phi_next - ro.reward_before / 10
+
+
+def decision_rewards(ro, cfg: FinetuneConfig, n_exec: int) -> torch.Tensor:
+    """Training reward per decision [N] (see `FinetuneConfig.reward`)."""
+    if cfg.reward == "dense":
+        return ro.env_rewards / (10 * n_exec)
+    return cfg.success_reward * ro.terminal.float() + cfg.shaping_scale * shaping(ro, cfg.gamma)
 
 
 def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, reduce: str, squash: bool):
@@ -192,7 +209,8 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
 
     @torch.no_grad()
     def act(states: np.ndarray, progress: np.ndarray):
-        res = sample_chain(policy, make_batch(torch.from_numpy(states)), steps, generator, reduce=reduce)
+        res = sample_chain(policy, make_batch(torch.from_numpy(states)), steps, generator, reduce=reduce,
+                           executed=n_exec)
         if squash:
             actions = squash_to_box(res.chain[:, -1], policy.normalizers["actions"])[0]
         else:
@@ -215,8 +233,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
     task, task_index = _resolve_task(cfg, trained)
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
-    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, {"finetune": asdict(cfg)})
-    reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps).requires_grad_(False)
+    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule, {"finetune": asdict(cfg)})
+    reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
     state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
     sigma_params = list(policy.sigma.parameters())
     groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
@@ -274,7 +292,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
     if not evals:
         run_eval()
     envs = [make_env(task, seed=cfg.seed * 1000 + i) for i in range(cfg.num_envs)]
-    trained_steps = cfg.sde_steps - cfg.skip_last_steps
+    credited = trained_slice(cfg.sde_steps, cfg.trained_steps)
     t0 = time.perf_counter()
     cpu0 = time.process_time() - (history[-1].get("cpu_s", 0.0) if history else 0.0)   # carried over a resume
 
@@ -288,20 +306,20 @@ def finetune(cfg: FinetuneConfig) -> Path:
                  for i in range(cfg.num_envs)]
         policy.eval()
         act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
-        ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps)
+        ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
         rec = ro.records
-        rewards = cfg.success_reward * ro.success.float() + cfg.shaping_scale * shaping(ro, cfg.gamma)
+        rewards = decision_rewards(ro, cfg, n_exec)
         with torch.no_grad():
             logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
-                                                rec["grid"][0], cfg.logprob_reduce)
+                                                rec["grid"][0], cfg.logprob_reduce, n_exec)
                                   for i in range(0, len(rewards), 512)])
-        kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, :trained_steps].mean())
+        kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
         norm = policy.normalizers["state"].normalize
         if cfg.algo == "ppo":
             with torch.no_grad():
                 values = critic(norm(ro.states), ro.progress)
                 next_values = critic(norm(ro.next_states), ro.next_progress)
-            adv, ret = gae(rewards, values, next_values, ro.success, ro.last, cfg.gamma, cfg.gae_lambda)
+            adv, ret = gae(rewards, values, next_values, ro.terminal, ro.last, cfg.gamma, cfg.gae_lambda)
             if cfg.group_size > 1:
                 adv = group_advantages(rewards, ro.last, cfg.gamma, cfg.group_size)
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
@@ -310,7 +328,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
                                update_policy=cfg.group_size > 1 or iteration >= cfg.critic_warmup_iters)
         else:
             buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
-                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.success})
+                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.terminal})
             stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
             if buffer.size >= cfg.sac_batch_size:
                 runs = [sac_update(policy, reference, critic, q_target, optimizers["actor"], optimizers["q"], buffer,

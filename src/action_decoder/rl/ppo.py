@@ -61,6 +61,11 @@ def k3_kl(log_ratio_ref: Tensor) -> Tensor:
     return torch.expm1(log_ratio_ref) - log_ratio_ref
 
 
+def trained_slice(steps: int, trained_steps: int) -> slice:
+    """The denoising steps an objective credits: the last `trained_steps` of `steps`."""
+    return slice(steps - trained_steps, steps)
+
+
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
                data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
@@ -70,10 +75,12 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     `update_policy=False` trains only the critic (warm-up).
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
-    trained = slice(0, K - cfg.skip_last_steps)
+    trained = trained_slice(K, cfg.trained_steps)
     adv = data["adv"]
     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if n > 1 else adv
-    params = [p for g in optimizer.param_groups for p in g["params"]]
+    # Clipped apart: the critic's gradient scale (returns of up to ~1/(1−γ)) must not shrink the policy's.
+    critic_params = list(value_net.parameters())
+    policy_params = [p for g in optimizer.param_groups for p in g["params"] if all(p is not c for c in critic_params)]
     stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0}
     logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
@@ -87,7 +94,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             loss = cfg.vf_coef * v_loss
             if update_policy:
                 lp = rescore_chain(policy, make_batch(data["states"][idx]), data["chain"][idx], data["grid"],
-                                   cfg.logprob_reduce)[:, trained]                          # [b, K']
+                                   cfg.logprob_reduce, policy.config.n_action_steps)[:, trained]                          # [b, K']
                 log_ratio = lp - data["logp_old"][idx, trained]
                 ratio = log_ratio.exp()
                 if first:
@@ -117,7 +124,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             logs["v_loss"].append(float(v_loss.detach()))
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            torch.nn.utils.clip_grad_norm_(policy_params, cfg.grad_clip)
+            torch.nn.utils.clip_grad_norm_(critic_params, cfg.grad_clip)
             optimizer.step()
         stats["epochs"] = epoch + 1
         if stop:

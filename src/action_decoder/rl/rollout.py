@@ -4,8 +4,10 @@ Each call runs one full episode per env, from layouts given by seeds (so an iter
 reproducible and a resumed run re-collects exactly what it would have). A decision
 executes the chunk's first `n_action_steps` actions (clipped to [−1, 1]); its reward is the
 sum of the env rewards over the steps executed (the env reward of the last step before and
-of the last step of the decision are kept too: they serve as potentials for shaping), and the episode ends at the first success
-(terminal) or at `max_steps` (truncation: the critic bootstraps there). Rows are returned
+of the last step of the decision are kept too: they serve as potentials for shaping). With
+`stop_on_success` the episode ends at the first success (terminal), otherwise it runs on (the
+dense-reward protocol of Meta-World's RL baselines); it is truncated at `max_steps` (the critic
+bootstraps there). Rows are returned
 episode by episode, in time order, which is what GAE needs.
 """
 
@@ -33,7 +35,8 @@ class Rollout:
     env_rewards: Tensor     # [N] sum of env rewards over the executed steps
     reward_before: Tensor   # [N] env reward of the step before the decision (first decision: its first step)
     reward_after: Tensor    # [N] env reward of the decision's last step
-    success: Tensor         # [N] bool: success reached during this decision (terminal)
+    success: Tensor         # [N] bool: the success flag was raised during this decision
+    terminal: Tensor        # [N] bool: the episode ended in a terminal state (success with stop_on_success)
     last: Tensor            # [N] bool: the episode ended after this decision
     records: dict           # name -> Tensor [N, ...]
     episode_returns: list   # [E] env return per episode
@@ -42,7 +45,8 @@ class Rollout:
     env_steps: int
 
 
-def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_steps: int) -> Rollout:
+def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_steps: int,
+            stop_on_success: bool = True) -> Rollout:
     """Run one episode per env (layout `seeds[i]`) with chunks from `act`."""
     n = len(envs)
     obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]).astype(np.float32)
@@ -63,27 +67,29 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
                 obs[e], steps[e], reward = o, steps[e] + 1, reward + float(r)
                 latest[e] = float(r)
                 before = latest[e] if before is None else before
-                success = bool(info["success"])
-                if success or steps[e] >= max_steps:
+                success = success or bool(info["success"])
+                if (success and stop_on_success) or steps[e] >= max_steps:
                     break
             returns[e] += reward
             wins[e] = wins[e] or success
-            last = success or steps[e] >= max_steps
+            terminal = success and stop_on_success
+            last = terminal or steps[e] >= max_steps
             rows[e].append({"state": state, "next_state": obs[e].copy(), "progress": progress[j],
                             "next_progress": steps[e] / max_steps, "reward": reward, "reward_before": before,
                             "reward_after": latest[e], "success": success,
-                            "last": last, **{k: v[j] for k, v in record.items()}})
+                            "terminal": terminal, "last": last, **{k: v[j] for k, v in record.items()}})
             if not last:
                 still.append(e)
         active = still
     flat = [r for ep in rows for r in ep]
     keys = [k for k in flat[0] if k not in ("state", "next_state", "progress", "next_progress", "reward",
-                                            "reward_before", "reward_after", "success", "last")]
+                                            "reward_before", "reward_after", "success", "terminal", "last")]
     col = lambda k, dt=torch.float32: torch.as_tensor(np.array([r[k] for r in flat]), dtype=dt)  # noqa: E731
     return Rollout(states=col("state"), next_states=col("next_state"), progress=col("progress"),
                    next_progress=col("next_progress"), env_rewards=col("reward"),
                    reward_before=col("reward_before"), reward_after=col("reward_after"),
-                   success=col("success", torch.bool), last=col("last", torch.bool),
+                   success=col("success", torch.bool), terminal=col("terminal", torch.bool),
+                   last=col("last", torch.bool),
                    records={k: torch.stack([r[k] for r in flat]) for k in keys},
                    episode_returns=returns, episode_success=wins,
                    episode_lengths=[int(s) for s in steps], env_steps=int(steps.sum()))

@@ -19,7 +19,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .ppo import k3_kl
+from .ppo import k3_kl, trained_slice
 from .sde_policy import rescore_chain, sample_chain, squash_to_box
 
 
@@ -92,7 +92,7 @@ def sac_update(policy, reference, q, q_target, opt_actor, opt_q, buffer: ReplayB
         lp = rescore_chain(policy, batch, chain, res.grid)
         with torch.no_grad():
             lp_ref = rescore_chain(reference, batch, chain, res.grid)
-        kl = k3_kl(lp_ref - lp)[:, : chain.shape[1] - 1 - cfg.skip_last_steps].mean()
+        kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
         actor_loss = actor_loss + cfg.kl_coef * kl
         stats["kl_bc"] = float(kl.detach())
     opt_actor.zero_grad(set_to_none=True)

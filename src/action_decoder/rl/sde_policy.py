@@ -21,9 +21,10 @@ from ..policy import ActionDecoderPolicy
 
 
 def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, steps: int,
-                    extra: Optional[dict] = None) -> ActionDecoderPolicy:
-    """A copy of a BC policy that samples with the exploring SDE: σ(t) = a·√((1−t)/t), a = `sigma`,
-    times a learnable multiplier (starting at exactly 1) when `learn_sigma`; K = `steps`.
+                    schedule: str = "explore", extra: Optional[dict] = None) -> ActionDecoderPolicy:
+    """A copy of a BC policy that samples with an SDE: σ(t) = a·√((1−t)/t) ("explore") or a
+    ("fixed"), a = `sigma`, times a learnable multiplier (starting at exactly 1) when
+    `learn_sigma`; K = `steps`.
 
     The saved config has flow_sde_use=True so `action-decoder eval` samples the chain that was
     optimised by default (`--sampler ode` gives the deterministic policy).
@@ -31,7 +32,7 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
     if bc.config.decoder_type == "DDPM":
         raise ValueError("--checkpoint: RL fine-tuning needs a flow_matching or mean_flow decoder (its SDE "
                          "sampler has per-step densities); this checkpoint is decoder_type='DDPM'")
-    cfg = replace(bc.config, flow_sde_use=True, flow_sde_mode="explore", flow_sde_s_churn=float(sigma),
+    cfg = replace(bc.config, flow_sde_use=True, flow_sde_mode=schedule, flow_sde_s_churn=float(sigma),
                   flow_sde_learn_sigma=bool(learn_sigma), flow_sde_sigma_init=1.0,
                   num_inference_timesteps=int(steps), flow_sde_return_logprob=False,
                   extra={**bc.config.extra, **(extra or {})})
@@ -44,23 +45,43 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
     return policy.to(next(bc.parameters()).device)
 
 
+def reduce_step_log_probs(lp: Tensor, reduce: str, executed: Optional[int] = None) -> Tensor:
+    """Per-element log-probs [B, K, H, D] -> per-step [B, K], summed or averaged over the chunk.
+
+    With `executed`, the last step keeps only the chunk's first `executed` rows: the others are
+    never executed and nothing later depends on them, so their noise is independent of the
+    reward and dropping their terms removes variance from the policy gradient without bias.
+    Earlier steps keep every row: their noise reaches the executed rows through attention.
+    """
+    if executed is None or executed >= lp.shape[-2]:
+        return lp.sum((-2, -1)) if reduce == "sum" else lp.mean((-2, -1))
+    keep = torch.ones(lp.shape[1:3], dtype=lp.dtype, device=lp.device)          # [K, H]
+    keep[-1, executed:] = 0
+    total = (lp * keep[..., None]).sum((-2, -1))
+    return total if reduce == "sum" else total / (keep.sum(-1) * lp.shape[-1])
+
+
 def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, generator: Optional[torch.Generator],
-                 reduce: str = "sum", logprob: str = "full", noise: Optional[Tensor] = None) -> SDEResult:
+                 reduce: str = "sum", logprob: str = "full", noise: Optional[Tensor] = None,
+                 executed: Optional[int] = None) -> SDEResult:
     """One SDE chain per row, in normalised action units, with per-step log-probs [B, K]
-    (differentiable: wrap in no_grad for rollouts)."""
+    (`reduce_step_log_probs`; differentiable: wrap in no_grad for rollouts)."""
     cfg = policy.config
     if noise is None:
         b = batch["state"].shape[0]
         noise = torch.randn((b, cfg.action_chunk_size, cfg.action_dim), generator=generator,
                             device=batch["state"].device)
-    return sample_sde(policy.bind(batch).flow_velocity, noise, steps, policy.sigma, generator=generator,
-                      return_logprob=True, logprob=logprob, clip_t=cfg.flow_sde_clip_t, reduce=reduce)
+    res = sample_sde(policy.bind(batch).flow_velocity, noise, steps, policy.sigma, generator=generator,
+                     return_logprob=True, logprob=logprob, clip_t=cfg.flow_sde_clip_t, reduce="none")
+    res.step_log_probs = reduce_step_log_probs(res.step_log_probs, reduce, executed)
+    res.log_prob = res.step_log_probs.sum(1)
+    return res
 
 
 def rescore_chain(policy: ActionDecoderPolicy, batch: Mapping, chain: Tensor, grid: Tensor,
-                  reduce: str = "sum") -> Tensor:
+                  reduce: str = "sum", executed: Optional[int] = None) -> Tensor:
     """Per-step log-probs [B, K] of stored chains under the current weights and σ."""
-    return policy.chain_log_prob(batch, chain, grid, reduce=reduce)
+    return reduce_step_log_probs(policy.chain_log_prob(batch, chain, grid, reduce="none"), reduce, executed)
 
 
 def squash_to_box(x: Tensor, normalizer) -> tuple[Tensor, Tensor]:
