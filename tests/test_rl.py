@@ -132,7 +132,7 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     _bc().save_pretrained(ckpt)
     args = ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30", "--num-envs", "2",
             "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "1",
-            "--minibatch-size", "4",
+            "--minibatch-size", "4", "--group-size", "2",
             "--critic-warmup-iters", "0", "--checkpoint-every", "1", "--kl-coef", "0.01"]
     assert main(args) == 0
     log = json.loads((out / "finetune_log.json").read_text())
@@ -191,14 +191,20 @@ def test_group_advantages_compare_episodes_of_one_layout():
     # Four episodes (rows stored episode by episode), two layouts of two episodes each.
     rewards = torch.tensor([0.0, 1.0, 0.2, 0.0, -0.1, 2.0, 0.5, 1.0])
     last = torch.tensor([0, 1, 0, 0, 1, 1, 0, 1], dtype=torch.bool)
-    gamma = 0.5
-    returns = [0.0 + 0.5 * 1.0, 0.2 + 0.0 - 0.25 * 0.1, 2.0, 0.5 + 0.5 * 1.0]
-    means = [(returns[0] + returns[1]) / 2] * 2 + [(returns[2] + returns[3]) / 2] * 2
-    per_episode = [r - m for r, m in zip(returns, means)]
-    expected = torch.tensor([per_episode[e] for e in (0, 0, 1, 1, 1, 2, 3, 3)])
-    assert torch.allclose(group_advantages(rewards, last, gamma, 2), expected)
-    with pytest.raises(ValueError, match="group_size"):
-        group_advantages(rewards, last, gamma, 3)
+    # discounted rewards-to-go (γ = 0.5) per episode and decision, 0 after an episode's end
+    to_go = [[0.5, 1.0, 0.0], [0.175, -0.05, -0.1], [2.0, 0.0, 0.0], [1.0, 1.0, 0.0]]
+    other = {0: 1, 1: 0, 2: 3, 3: 2}                     # leave-one-out mean of a group of two
+    rows = [(0, 0), (0, 1), (1, 0), (1, 1), (1, 2), (2, 0), (3, 0), (3, 1)]
+    expected = torch.tensor([to_go[e][t] - to_go[other[e]][t] for e, t in rows])
+    assert torch.allclose(group_advantages(rewards, last, 0.5, 2), expected)
+    # the baseline ignores the episode's own rewards: changing them moves only its own advantages
+    bumped = rewards.clone()
+    bumped[5] += 1.0
+    diff = group_advantages(bumped, last, 0.5, 2) - expected
+    assert torch.allclose(diff, torch.tensor([0, 0, 0, 0, 0, 1.0, -1.0, 0]))
+    for bad in (1, 3):
+        with pytest.raises(ValueError, match="group_size"):
+            group_advantages(rewards, last, 0.5, bad)
 
 
 def test_ppo_on_chains_learns_a_contextual_bandit():

@@ -52,9 +52,12 @@ class FinetuneConfig:
     limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
     num_envs: int = 32
     """Lockstep envs; each iteration runs one episode on each."""
-    group_size: int = 1
-    """PPO: episodes per training layout. Above 1, advantages are GRPO-style (an episode's return
-    against the others on its layout, see `ppo.group_advantages`) instead of the critic's GAE."""
+    group_size: int = 4
+    """PPO: episodes per training layout. Above 1, advantages are GRPO-style (each decision's
+    reward-to-go against the other episodes of its layout, see `ppo.group_advantages`) instead of
+    the critic's GAE (1). On 3-demo reach the return varies 3–4× between layouts and by a few %
+    between episodes of one layout: the critic's error swamped that signal (no learning), the
+    group comparison isolates it."""
     max_episode_steps: int = 200
     """Cap of the training episodes in env steps (BC successes come within ~50–150 steps; failures
     would spend the rest of Meta-World's 500 without a signal). Evaluation always runs 500."""

@@ -39,21 +39,37 @@ def gae(rewards: Tensor, values: Tensor, next_values: Tensor, terminal: Tensor, 
 
 
 def group_advantages(rewards: Tensor, last: Tensor, gamma: float, group_size: int) -> Tensor:
-    """GRPO-style advantages [N]: each episode's discounted return minus the mean return of its
-    group (`group_size` consecutive episodes played on the same layout), given to every decision
-    of the episode. Comparing episodes of one layout removes the layout's difficulty from the
-    signal, which a critic learnt from a few hundred episodes does poorly. Rows must be stored
-    episode by episode; scaling is left to the per-iteration normalisation of the update."""
+    """GRPO-style advantages [N] for episodes played in groups of `group_size` consecutive
+    episodes from one layout (rows stored episode by episode, in time order).
+
+    Decision t of an episode gets its discounted reward-to-go minus the mean reward-to-go at
+    decision t of the *other* episodes of its group (an episode that has ended counts 0: after
+    success nothing more is earned). Leaving the episode out keeps the baseline independent of
+    its own actions (no bias). Why: with few demonstrations the return varies 3–4× between
+    layouts but a few % between episodes of one layout, so a critic's error swamps the signal
+    that comparing episodes of one layout isolates exactly. Scaling is left to the update's
+    per-iteration normalisation.
+    """
+    if group_size < 2:
+        raise ValueError(f"group_size: expected at least 2 episodes per layout, got {group_size}")
     ends = last.long()
     episode = torch.cumsum(ends, 0) - ends                                    # [N] episode index
     n_episodes = int(episode[-1]) + 1
     if n_episodes % group_size:
         raise ValueError(f"group_size: {n_episodes} episodes do not split into groups of {group_size}")
     starts = torch.nonzero(torch.cat([torch.ones(1, dtype=torch.bool), last[:-1]])).flatten()   # [E]
-    position = torch.arange(len(rewards)) - starts[episode]                  # decision index within its episode
-    ret = torch.zeros(n_episodes, dtype=rewards.dtype).index_add_(0, episode, gamma ** position * rewards)
-    groups = ret.view(-1, group_size)
-    return (groups - groups.mean(1, keepdim=True)).flatten()[episode]
+    position = torch.arange(len(rewards)) - starts[episode]                  # decision index in its episode
+    horizon = int(position.max()) + 1
+    padded = torch.zeros(n_episodes, horizon, dtype=rewards.dtype)
+    padded[episode, position] = rewards                                       # [E, T], 0 after the end
+    to_go = torch.zeros_like(padded)
+    running = torch.zeros(n_episodes, dtype=rewards.dtype)
+    for t in range(horizon - 1, -1, -1):
+        running = padded[:, t] + gamma * running
+        to_go[:, t] = running
+    groups = to_go.view(-1, group_size, horizon)                             # [E/G, G, T]
+    others = (groups.sum(1, keepdim=True) - groups) / (group_size - 1)
+    return (groups - others).view(n_episodes, horizon)[episode, position]
 
 
 def k3_kl(log_ratio_ref: Tensor) -> Tensor:
