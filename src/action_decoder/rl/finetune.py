@@ -59,8 +59,8 @@ class FinetuneConfig:
     between episodes of one layout: the critic's error swamped that signal (no learning), the
     group comparison isolates it."""
     max_episode_steps: int = 200
-    """Cap of the training episodes in env steps (BC successes come within ~50–150 steps; failures
-    would spend the rest of Meta-World's 500 without a signal). Evaluation always runs 500."""
+    """Length cap of the training episodes in env steps (BC successes come within ~50–150 steps;
+    longer episodes cost env steps without a new signal). Evaluation always runs 500."""
     seed: int = 0
     sde_steps: int = 10
     """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
@@ -85,9 +85,9 @@ class FinetuneConfig:
     in the success region). "success": `success_reward` on the decision that succeeds, where the
     episode ends, plus `shaping_scale` potential-based shaping."""
     success_reward: float = 1.0
-    """Reward on the decision that reaches success (the episode ends there)."""
+    """`--reward success`: reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
-    """Weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
+    """`--reward success`: weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
     Φ = 0 after success. It guides credit assignment without changing the optimal policy (0: success
     only). Keep k well below `success_reward`: a truncated episode that hovers at the goal earns
     ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
@@ -95,7 +95,7 @@ class FinetuneConfig:
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
     trained_steps: int = 10
     """The last N denoising steps enter the PPO/KL objective. Their noise is what moves the executed
-    actions: on a 3-demo reach policy the last 5 of 10 steps carry 95 % of the executed-action
+    actions: on a 3-demo reach policy the last 5 of 10 steps carry 97 % of the executed-action
     variance and the last one 71 %, while the first 5 carry 5 % (the velocity field contracts early
     noise back onto the data), so crediting early steps gives PPO almost no signal."""
     clip_eps: float = 0.2

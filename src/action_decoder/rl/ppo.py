@@ -96,7 +96,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if n > 1 else adv
     # Clipped apart: the critic's gradient scale (returns of up to ~1/(1−γ)) must not shrink the policy's.
     critic_params = list(value_net.parameters())
-    policy_params = [p for g in optimizer.param_groups for p in g["params"] if all(p is not c for c in critic_params)]
+    critic_ids = {id(p) for p in critic_params}
+    policy_params = [p for g in optimizer.param_groups for p in g["params"] if id(p) not in critic_ids]
     stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0}
     logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
@@ -110,7 +111,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             loss = cfg.vf_coef * v_loss
             if update_policy:
                 lp = rescore_chain(policy, make_batch(data["states"][idx]), data["chain"][idx], data["grid"],
-                                   cfg.logprob_reduce, policy.config.n_action_steps)[:, trained]                          # [b, K']
+                                   cfg.logprob_reduce, policy.config.n_action_steps)[:, trained]  # [b, K']
                 log_ratio = lp - data["logp_old"][idx, trained]
                 ratio = log_ratio.exp()
                 if first:
