@@ -16,7 +16,7 @@ from action_decoder.rl.critics import ValueNet
 from action_decoder.rl.finetune import FinetuneConfig, chain_actor, shaping
 from action_decoder.rl.ppo import gae, group_advantages, ppo_update
 from action_decoder.rl.rollout import collect
-from action_decoder.rl.sac import actor_sample
+from action_decoder.rl.sac import Temperature, actor_sample
 from action_decoder.rl.sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
 
 S, D, H = 39, 4, 4
@@ -84,6 +84,22 @@ def test_sac_entropy_gradient_reaches_sigma_only():
     policy.zero_grad()
     actions.square().sum().backward()                  # a Q-like term moves the velocity network
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.parameters())
+
+
+def test_temperature_holds_the_entropy_at_its_target():
+    temp = Temperature(alpha=0.1)
+    opt = torch.optim.SGD(temp.parameters(), lr=0.5)
+    logp = torch.full((8,), -1.0)                       # entropy 1 per dimension: becomes the target
+    temp.loss(logp).backward()
+    assert temp.target == 1.0 and temp.log_alpha.grad == 0
+    for entropy, direction in ((2.0, -1), (0.5, +1)):   # too much entropy: α falls; too little: α rises
+        before = float(temp.alpha)
+        opt.zero_grad()
+        temp.loss(torch.full((8,), -entropy, requires_grad=True)).backward()
+        opt.step()
+        assert (float(temp.alpha) - before) * direction > 0
+    fixed = Temperature(alpha=0.1, target=-3.0)
+    assert fixed.target == -3.0 and abs(float(fixed.alpha) - 0.1) < 1e-7
 
 
 def test_squash_correction_matches_transformed_distribution():

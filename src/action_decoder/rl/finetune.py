@@ -27,7 +27,7 @@ from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save
 from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
-from .sac import ReplayBuffer, make_target, sac_update
+from .sac import ReplayBuffer, Temperature, make_target, sac_update
 from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
 
 TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN = 500_000, 400_000
@@ -111,7 +111,13 @@ class FinetuneConfig:
     ratio_tol: float = 1e-4
     """PPO: tolerated |ratio − 1| before the first update of an iteration."""
     alpha: float = 0.01
-    """SAC: entropy weight (log-probs per action dimension)."""
+    """SAC: initial entropy weight α (log-probs per action dimension)."""
+    alpha_lr: float = 3e-2
+    """SAC: learning rate of log α, tuned to hold the entropy at `target_entropy` (0: α fixed). It
+    must outpace σ's drift under the entropy term (Adam moves log σ by up to `sigma_lr` per update)."""
+    target_entropy: Optional[float] = None
+    """SAC: entropy per action dimension that α holds (default: the initial policy's, so exploration
+    stays where `--sigma` puts it)."""
     tau: float = 0.005
     sac_batch_size: int = 128
     sac_updates_per_decision: float = 0.5
@@ -130,10 +136,10 @@ def _check(cfg: FinetuneConfig) -> None:
                  "sac_batch_size", "buffer_size", "checkpoint_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
-    for name in ("sigma", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip"):
+    for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip"):
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
-    for name in ("kl_coef", "alpha", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
+    for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
                  "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
@@ -250,7 +256,9 @@ def finetune(cfg: FinetuneConfig) -> Path:
     else:
         critic = TwinQ(state_dim, n_exec * policy.config.action_dim)
         q_target = make_target(critic)
-        optimizers = {"actor": torch.optim.Adam(groups), "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)}
+        temperature = Temperature(cfg.alpha, cfg.target_entropy)
+        optimizers = {"actor": torch.optim.Adam(groups), "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
+                      "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
         buffer = ReplayBuffer(cfg.buffer_size)
     gen = torch.Generator().manual_seed(cfg.seed)
     iteration, env_steps, history, evals = 0, 0, [], []
@@ -263,6 +271,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
             opt.load_state_dict(st["optimizers"][k])
         if buffer is not None:
             q_target.load_state_dict(st["q_target"])
+            temperature.load_state_dict(st["temperature"])
             buffer.load_state_dict(st["buffer"])
         gen.set_state(st["gen"])
         _set_rng_state(st["rng"])
@@ -334,8 +343,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
                         "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.terminal})
             stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
             if buffer.size >= cfg.sac_batch_size:
-                runs = [sac_update(policy, reference, critic, q_target, optimizers["actor"], optimizers["q"], buffer,
-                                   make_batch, cfg, gen) for _ in range(n_updates)]
+                runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
+                                   gen) for _ in range(n_updates)]
                 stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
         iteration += 1
         env_steps += ro.env_steps
@@ -358,7 +367,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
                      "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
                      "gen": gen.get_state(), "rng": _rng_state()}
             if buffer is not None:
-                state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict())
+                state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict(),
+                             temperature=temperature.state_dict())
             write_checkpoint(out, iteration, policy, state)
     if not evals or evals[-1]["iteration"] != iteration:
         run_eval()

@@ -9,6 +9,11 @@ tanh correction enters the entropy's value but not its gradient (it would otherw
 the velocity network toward the origin, and the design keeps entropy gradients on σ).
 Log-probs are divided by H·D (entropy per action dimension) so that α does not depend on
 the chunk size. The twin Q sees the state and the executed part of the chunk.
+
+α is tuned as in SAC v2 (`Temperature`) to hold the entropy at a target, by default the
+BC policy's own: with a fixed α the entropy term's gradient on σ has one sign, and Adam
+turns any consistent sign into a full-size step, so σ's multiplier ran from 1 to 1.86 in
+the first 400 updates on reach.
 """
 
 from __future__ import annotations
@@ -56,6 +61,27 @@ class ReplayBuffer:
                      for k, v in state["data"].items()}
 
 
+class Temperature(torch.nn.Module):
+    """α = exp(log α), tuned so that the entropy per action dimension stays at `target`
+    (NaN until set from the first batch: the initial policy's entropy)."""
+
+    def __init__(self, alpha: float, target: float | None = None):
+        super().__init__()
+        self.log_alpha = torch.nn.Parameter(torch.tensor(float(alpha)).log())
+        self.register_buffer("target", torch.tensor(float("nan") if target is None else float(target)))
+
+    @property
+    def alpha(self) -> Tensor:
+        return self.log_alpha.exp().detach()
+
+    def loss(self, logp: Tensor) -> Tensor:
+        """−log α·(target − entropy): α falls while the entropy (−logp) is above target, rises below."""
+        entropy = -logp.detach().mean()
+        if self.target.isnan():
+            self.target.fill_(float(entropy))
+        return -self.log_alpha * (self.target - entropy)
+
+
 def actor_sample(policy, batch: dict, cfg, generator: torch.Generator):
     """Reparameterised chunk: (env actions [B, H, D], per-dim log-prob [B] (σ-only gradient), result)."""
     res = sample_chain(policy, batch, cfg.sde_steps, generator, reduce="sum", logprob="eps")
@@ -64,29 +90,31 @@ def actor_sample(policy, batch: dict, cfg, generator: torch.Generator):
     return actions, (res.step_log_probs.sum(1) - log_det.detach()) / numel, res
 
 
-def sac_update(policy, reference, q, q_target, opt_actor, opt_q, buffer: ReplayBuffer,
+def sac_update(policy, reference, q, q_target, temperature: Temperature, optimizers: dict, buffer: ReplayBuffer,
                make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator) -> dict:
-    """One critic and one actor step on a replay batch; Polyak-averages the target critic."""
+    """One critic, actor and temperature step on a replay batch (`optimizers`: "q", "actor",
+    "alpha"); Polyak-averages the target critic."""
+    alpha = temperature.alpha
     b = buffer.sample(cfg.sac_batch_size, generator)
     n = b["actions"].shape[1]
     norm = policy.normalizers["state"].normalize
     with torch.no_grad():
         nxt, logp_next, _ = actor_sample(policy, make_batch(b["next_state"]), cfg, generator)
         tq = torch.min(*q_target(norm(b["next_state"]), b["next_progress"], nxt[:, :n]))
-        target = b["reward"] + cfg.gamma * (1 - b["done"].float()) * (tq - cfg.alpha * logp_next)
+        target = b["reward"] + cfg.gamma * (1 - b["done"].float()) * (tq - alpha * logp_next)
     q1, q2 = q(norm(b["state"]), b["progress"], b["actions"])
     q_loss = (q1 - target).square().mean() + (q2 - target).square().mean()
-    opt_q.zero_grad(set_to_none=True)
+    optimizers["q"].zero_grad(set_to_none=True)
     q_loss.backward()
     torch.nn.utils.clip_grad_norm_(q.parameters(), cfg.grad_clip)
-    opt_q.step()
+    optimizers["q"].step()
 
     batch = make_batch(b["state"])
     actions, logp, res = actor_sample(policy, batch, cfg, generator)
     q_pi = torch.min(*q(norm(b["state"]), b["progress"], actions[:, :n]))
-    actor_loss = (cfg.alpha * logp - q_pi).mean()
+    actor_loss = (alpha * logp - q_pi).mean()
     stats = {"q_loss": float(q_loss.detach()), "q": float(q_pi.detach().mean()),
-             "entropy_per_dim": float(-logp.detach().mean())}
+             "entropy_per_dim": float(-logp.detach().mean()), "alpha": float(alpha)}
     if cfg.kl_coef > 0:
         chain = res.chain.detach()
         lp = rescore_chain(policy, batch, chain, res.grid)
@@ -95,10 +123,15 @@ def sac_update(policy, reference, q, q_target, opt_actor, opt_q, buffer: ReplayB
         kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
         actor_loss = actor_loss + cfg.kl_coef * kl
         stats["kl_bc"] = float(kl.detach())
+    opt_actor = optimizers["actor"]
     opt_actor.zero_grad(set_to_none=True)
     actor_loss.backward()
     torch.nn.utils.clip_grad_norm_([p for g in opt_actor.param_groups for p in g["params"]], cfg.grad_clip)
     opt_actor.step()
+    if cfg.alpha_lr > 0:
+        optimizers["alpha"].zero_grad(set_to_none=True)
+        temperature.loss(logp).backward()
+        optimizers["alpha"].step()
     with torch.no_grad():
         for p, tp in zip(q.parameters(), q_target.parameters()):
             tp.lerp_(p, cfg.tau)
