@@ -384,7 +384,8 @@ def test_batch_permutation_equivariance():
         out_p = expert(x[perm], t[perm], r[perm], state[perm], freq[perm], expert.build_prefix(
             context=context[perm], context_mask=mask[perm],
             vlm_key_values=[(k[perm], v[perm]) for k, v in kv], attention_mask=am[perm]))
-    torch.testing.assert_close(out_p, out[perm], rtol=0, atol=1e-6)
+    # float32 kernels may sum in a batch-position-dependent order (~1e-6); mixing rows errs by ~1e-1.
+    torch.testing.assert_close(out_p, out[perm], rtol=0, atol=1e-5)
 
 
 def test_input_validation():

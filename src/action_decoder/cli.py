@@ -38,6 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("action-decoder: interrupted; continue with --resume", file=sys.stderr)
         return 130
+    finally:
+        # A gloo group left for interpreter shutdown can abort the process (SIGABRT) at exit.
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
     return 0
 
 
