@@ -4,6 +4,8 @@ layouts disjoint from the demonstrations, for each decoder and sampling budget.
 
     python -m benchmarks.metaworld_bc --jobs 2                      # the full grid (hours on CPU)
     python -m benchmarks.metaworld_bc --tasks metaworld/push --seeds 0 --episodes 20   # a taste
+    python -m benchmarks.metaworld_bc --tasks metaworld/MT10 --multitask --decoders flow_matching \
+        --steps 6000 --seeds 0 --runs runs/metaworld_mt10 --table docs/benchmarks/metaworld_mt10.md
 
 Every (task, seed, decoder) run lives in its own directory under --runs and is skipped when
 already complete, so the grid can be stopped and continued. The table is written to
@@ -39,7 +41,7 @@ def _run(cmd: list[str], log: Path) -> None:
 
 def run_one(task: str, seed: int, decoder: str, args) -> None:
     """Train one policy (if not yet trained), then evaluate it at each of its sampling budgets."""
-    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"
+    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"     # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
     if decoder == "mlp_baseline":       # the reference network: trains and evaluates in one go
@@ -60,13 +62,14 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
 
 
 def collect(runs: Path) -> dict:
-    """{task: {method: [success per seed]}} from the eval JSON files present."""
+    """{task: {method: [success per seed]}} from the eval JSON files present (a multi-task
+    policy contributes one entry per task)."""
     table: dict = {}
     for path in sorted(runs.glob("*/eval_*.json")):
         res = json.loads(path.read_text())
         method = (res["decoder_type"], res["sampler"], res["steps"])
-        task = res["results"][0]["task"]
-        table.setdefault(task, {}).setdefault(method, []).append(res["success_rate"])
+        for task, success in res["per_task"].items():
+            table.setdefault(task, {}).setdefault(method, []).append(success)
     return table
 
 
@@ -109,10 +112,15 @@ def main(argv=None) -> None:
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
     p.add_argument("--runs", default="runs/metaworld_bc")
     p.add_argument("--table", default="docs/benchmarks/metaworld_bc.md")
+    p.add_argument("--multitask", action="store_true",
+                   help="train one policy on all of --tasks (task given through the context path)")
     args = p.parse_args(argv)
     from action_decoder.envs import resolve_tasks
 
-    grid = [(f"metaworld/{t}", s, d) for t in resolve_tasks(args.tasks) for s in args.seeds for d in args.decoders]
+    tasks = [args.tasks] if args.multitask else [f"metaworld/{t}" for t in resolve_tasks(args.tasks)]
+    if args.multitask and "mlp_baseline" in args.decoders:
+        p.error("--multitask: the mlp_baseline reference has no task conditioning; drop it from --decoders")
+    grid = [(t, s, d) for t in tasks for s in args.seeds for d in args.decoders]
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()

@@ -65,6 +65,16 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     table = metaworld_bc.collect(tmp_path / "runs")
     assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
 
+    # A multi-task policy's evaluation contributes one row per task.
+    mt = tmp_path / "runs" / "MT10_s0_flow_matching"
+    mt.mkdir()
+    (mt / "eval_ode_k10.json").write_text(json.dumps(
+        {"decoder_type": "flow_matching", "sampler": "ode", "steps": 10, "success_rate": 0.55,
+         "per_task": {"reach-v3": 0.9, "push-v3": 0.2}}))
+    table = metaworld_bc.collect(tmp_path / "runs")
+    assert table["push-v3"] == {("flow_matching", "ode", 10): [0.2]}
+    assert table["reach-v3"][("flow_matching", "ode", 10)] == [0.9]
+
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
     monkeypatch.syspath_prepend(str(ROOT))
