@@ -1,5 +1,6 @@
 """Smoke test of the benchmark command (`python -m benchmarks --tiny`): not a timed test."""
 
+import argparse
 import json
 import math
 import sys
@@ -74,6 +75,30 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     table = metaworld_bc.collect(tmp_path / "runs")
     assert table["push-v3"] == {("flow_matching", "ode", 10): [0.2]}
     assert table["reach-v3"][("flow_matching", "ode", 10)] == [0.9]
+
+
+def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    run = tmp_path / "runs" / "reach-v3_mean_flow"
+    (run / "ft").mkdir(parents=True)
+
+    def ev(name, rate, steps):
+        (run / name).write_text(json.dumps({"decoder_type": "mean_flow", "success_rate": rate, "steps": steps}))
+
+    ev("bc_eval.json", 0.30, 1)          # MeanFlow's default K = 1
+    ev("bc_eval_k10.json", 0.40, 10)     # the K the fine-tuned policy samples with
+    ev("ft_eval_sde.json", 0.70, 10)
+    ev("ft_eval_ode.json", 0.60, 10)
+    hist = [{"iteration": 1, "env_steps": 6400, "wall_s": 60.0, "cpu_s": 55.0}]
+    (run / "ft" / "finetune_log.json").write_text(json.dumps(
+        {"task": "reach-v3", "config": {"algo": "ppo"}, "history": hist,
+         "evals": [{"iteration": 1, "success_sde": 0.5, "success_ode": 0.5}]}))
+    rows = rl_finetune.collect(tmp_path / "runs")
+    args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000)
+    text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
+    assert "| 30 (K=1) | 40 (K=10) | 70 | 60 | +30 |" in text      # 70 − max(30, 40)
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
