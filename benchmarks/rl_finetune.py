@@ -76,14 +76,14 @@ def collect(runs: Path) -> list[dict]:
     for run in sorted(p for p in runs.iterdir() if (p / "ft_eval_ode.json").is_file()):
         bc = json.loads((run / "bc_eval.json").read_text())
         ft_k = json.loads((run / "ft_eval_ode.json").read_text())["steps"]
-        bc_k = run / f"bc_eval_k{ft_k}.json"
-        bc_k = json.loads(bc_k.read_text()) if bc_k.is_file() else bc
+        at_k = run / f"bc_eval_k{ft_k}.json"
+        bc_at_k = json.loads(at_k.read_text()) if at_k.is_file() else bc
         sde = json.loads((run / "ft_eval_sde.json").read_text())
         ode = json.loads((run / "ft_eval_ode.json").read_text())
         log = json.loads((run / "ft" / "finetune_log.json").read_text())
         last = log["history"][-1]
         rows.append({"run": run.name, "task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
-                     "bc": bc["success_rate"], "bc_k": bc["steps"], "bc_ft_k": bc_k["success_rate"], "ft_k": ft_k,
+                     "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"], "ft_k": ft_k,
                      "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
                      "cpu_min": last.get("cpu_s", last["wall_s"]) / 60, "env_steps": last["env_steps"],
                      "evals": log["evals"], "history": log["history"]})
@@ -95,9 +95,9 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
              "fine-tuned (ODE) | gain (best over best) | CPU min | env steps |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        gain = 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_ft_k"]))
-        lines.append(f"| {r['task']} | {r['decoder']} | {r['algo']} | {100 * r['bc']:.0f} (K={r['bc_k']}) | "
-                     f"{100 * r['bc_ft_k']:.0f} (K={r['ft_k']}) | {100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | "
+        gain = 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
+        lines.append(f"| {r['task']} | {r['decoder']} | {r['algo']} | {100 * r['bc']:.0f} (K={r['bc_steps']}) | "
+                     f"{100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | {100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | "
                      f"{gain:+.0f} | {r['cpu_min']:.0f} | {r['env_steps']} |")
     text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
@@ -116,7 +116,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
             for sampler in ("sde", "ode"):
                 pts = [(cpu.get(e["iteration"], 0.0), e[f"success_{sampler}"]) for e in r["evals"]]
                 ax.plot(*zip(*pts), marker="o", label=f"eval {sampler} (20 ep.)")
-            ax.axhline(r["bc_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
+            ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
             ax.set(title=f"{r['task']} {r['decoder']}", xlabel="CPU minutes", ylabel="success", ylim=(-0.02, 1.02))
             ax.grid(alpha=0.3)
         axes[0][0].legend(fontsize=7)
