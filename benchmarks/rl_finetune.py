@@ -7,8 +7,9 @@ evaluation layouts before and after.
 
 Each (task, decoder) run lives in its own directory under --runs (suffixed `_sac` for SAC);
 finished steps are skipped and an interrupted fine-tuning resumes, so the grid can be stopped
-and continued. The table and a plot of the learning curves are written to docs/benchmarks/
-from whatever runs exist.
+and continued. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json
+(which keeps the rows of earlier sessions, whose run directories are gone), and the table and
+a plot of the learning curves are written from it.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -72,6 +74,7 @@ def run_one(task: str, decoder: str, args) -> None:
 
 
 def collect(runs: Path) -> list[dict]:
+    """One row per finished run under `runs`: success before/after and the evaluation curve."""
     rows = []
     for run in sorted(p for p in runs.iterdir() if (p / "ft_eval_ode.json").is_file()):
         bc = json.loads((run / "bc_eval.json").read_text())
@@ -82,40 +85,59 @@ def collect(runs: Path) -> list[dict]:
         ode = json.loads((run / "ft_eval_ode.json").read_text())
         log = json.loads((run / "ft" / "finetune_log.json").read_text())
         last = log["history"][-1]
-        rows.append({"run": run.name, "task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
+        cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in log["history"]}
+        rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
                      "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"], "ft_k": ft_k,
                      "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
-                     "cpu_min": last.get("cpu_s", last["wall_s"]) / 60, "env_steps": last["env_steps"],
-                     "evals": log["evals"], "history": log["history"]})
+                     "cpu_min": round(last.get("cpu_s", last["wall_s"]) / 60, 2), "env_steps": last["env_steps"],
+                     "measured": time.strftime("%Y-%m-%d", time.gmtime((run / "ft_eval_ode.json").stat().st_mtime)),
+                     # (CPU minutes, 20-episode SDE success, ODE success) at each evaluation during the run
+                     "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e["success_sde"], e["success_ode"]]
+                               for e in log["evals"]]})
     return rows
+
+
+def merge(results: Path, rows: list[dict]) -> list[dict]:
+    """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
+    (task, decoder, algo); written back so that tables and plots can be rebuilt across sessions."""
+    key = lambda r: (r["task"], r["decoder"], r["algo"])  # noqa: E731
+    kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
+    kept.update({key(r): r for r in rows})
+    merged = sorted(kept.values(), key=key)
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(json.dumps(merged, indent=1) + "\n")
+    return merged
 
 
 def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
     lines = ["| task | decoder | algo | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
-             "fine-tuned (ODE) | gain (best over best) | CPU min | env steps |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "fine-tuned (ODE) | gain (best over best) | CPU min | env steps | measured |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         gain = 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
         lines.append(f"| {r['task']} | {r['decoder']} | {r['algo']} | {100 * r['bc']:.0f} (K={r['bc_steps']}) | "
                      f"{100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | {100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | "
-                     f"{gain:+.0f} | {r['cpu_min']:.0f} | {r['env_steps']} |")
+                     f"{gain:+.0f} | {r['cpu_min']:.0f} | {r['env_steps']} | {r['measured']} |")
     text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
-            + "\n".join(lines) + "\n")
+            + "\n".join(lines) + "\n\n"
+            f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
+            "learning curves of the runs whose directories still existed when it was drawn. Discussion in "
+            "`docs/rl.md` § Measurements.\n")
     table.parent.mkdir(parents=True, exist_ok=True)
     table.write_text(text)
-    if rows:
+    curves = [r for r in rows if r["curve"]]
+    if curves:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, len(rows), figsize=(3.6 * len(rows), 3.2), squeeze=False)
-        for ax, r in zip(axes[0], rows):
-            cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in r["history"]}
-            for sampler in ("sde", "ode"):
-                pts = [(cpu.get(e["iteration"], 0.0), e[f"success_{sampler}"]) for e in r["evals"]]
-                ax.plot(*zip(*pts), marker="o", label=f"eval {sampler} (20 ep.)")
+        fig, axes = plt.subplots(1, len(curves), figsize=(3.6 * len(curves), 3.2), squeeze=False)
+        for ax, r in zip(axes[0], curves):
+            cpu, sde, ode = zip(*r["curve"])
+            ax.plot(cpu, sde, marker="o", label="eval sde (20 ep.)")
+            ax.plot(cpu, ode, marker="o", label="eval ode (20 ep.)")
             ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
             ax.set(title=f"{r['task']} {r['decoder']}", xlabel="CPU minutes", ylabel="success", ylim=(-0.02, 1.02))
             ax.grid(alpha=0.3)
@@ -128,7 +150,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--tasks", default="metaworld/reach,metaworld/reach-wall,metaworld/sweep-into",
+    p.add_argument("--tasks", default="metaworld/reach,metaworld/reach-wall,metaworld/door-lock",
                    help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/rl.md)")
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
     p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
@@ -140,16 +162,19 @@ def main(argv=None) -> None:
     p.add_argument("--runs", default="runs/rl_finetune")
     p.add_argument("--table", default="docs/benchmarks/rl_finetune.md")
     p.add_argument("--plot", default="docs/benchmarks/rl_finetune.png")
+    p.add_argument("--results", default="docs/benchmarks/rl_finetune.json",
+                   help="rows of earlier runs, merged with this run directory's and written back")
+    p.add_argument("--report-only", action="store_true", help="rebuild the table and plot, run nothing")
     p.add_argument("finetune_args", nargs=argparse.REMAINDER, help="extra `finetune` options after --")
     args = p.parse_args(argv)
     args.finetune_args = [a for a in args.finetune_args if a != "--"]
     from action_decoder.envs import resolve_tasks
 
-    grid = [(f"metaworld/{t}", d) for t in resolve_tasks(args.tasks) for d in args.decoders]
+    grid = [] if args.report_only else [(f"metaworld/{t}", d) for t in resolve_tasks(args.tasks) for d in args.decoders]
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()
-    print(write_report(collect(Path(args.runs)), Path(args.table), Path(args.plot), args))
+    print(write_report(merge(Path(args.results), collect(Path(args.runs))), Path(args.table), Path(args.plot), args))
 
 
 if __name__ == "__main__":

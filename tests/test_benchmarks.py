@@ -96,9 +96,30 @@ def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tm
         {"task": "reach-v3", "config": {"algo": "ppo"}, "history": hist,
          "evals": [{"iteration": 1, "success_sde": 0.5, "success_ode": 0.5}]}))
     rows = rl_finetune.collect(tmp_path / "runs")
-    args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000)
+    args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json")
     text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
     assert "| 30 (K=1) | 40 (K=10) | 70 | 60 | +30 |" in text      # 70 − max(30, 40)
+    assert rows[0]["curve"] == [[0.92, 0.5, 0.5]]                   # 55 CPU-s
+
+
+def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    def row(task, ft_sde):
+        return {"task": task, "decoder": "flow_matching", "algo": "ppo", "bc": 0.2, "bc_steps": 10, "bc_at_ft_k": 0.2,
+                "ft_k": 10, "ft_sde": ft_sde, "ft_ode": 0.1, "cpu_min": 45.0, "env_steps": 1000, "measured": "2026-11-23",
+                "curve": []}
+
+    results = tmp_path / "docs" / "rl.json"
+    rl_finetune.merge(results, [row("reach-v3", 0.5), row("push-v3", 0.3)])
+    merged = rl_finetune.merge(results, [row("reach-v3", 0.9)])          # a new run of reach only
+    assert [(r["task"], r["ft_sde"]) for r in merged] == [("push-v3", 0.3), ("reach-v3", 0.9)]
+    assert json.loads(results.read_text()) == merged
+    text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
+                                    argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
+    assert "| push-v3 | flow_matching | ppo | 20 (K=10) | 20 (K=10) | 30 | 10 | +10 | 45 | 1000 | 2026-11-23 |" in text
+    assert not (tmp_path / "t.png").exists()                            # no curves kept: no plot
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
