@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from operator import itemgetter
 from pathlib import Path
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
@@ -100,7 +101,7 @@ def collect(runs: Path) -> list[dict]:
 def merge(results: Path, rows: list[dict]) -> list[dict]:
     """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
     (task, decoder, algo); written back so that tables and plots can be rebuilt across sessions."""
-    key = lambda r: (r["task"], r["decoder"], r["algo"])  # noqa: E731
+    key = itemgetter("task", "decoder", "algo")
     kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({key(r): r for r in rows})
     merged = sorted(kept.values(), key=key)
@@ -122,8 +123,8 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
             + "\n".join(lines) + "\n\n"
             f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
-            "learning curves of the runs whose directories still existed when it was drawn. Discussion in "
-            "`docs/rl.md` § Measurements.\n")
+            "learning curves of the rows that kept one (rows recorded before the curves were stored have none). "
+            "Discussion in `docs/rl.md` § Measurements.\n")
     table.parent.mkdir(parents=True, exist_ok=True)
     table.write_text(text)
     curves = [r for r in rows if r["curve"]]
