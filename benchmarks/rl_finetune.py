@@ -106,7 +106,7 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
     kept.update({key(r): r for r in rows})
     merged = sorted(kept.values(), key=key)
     results.parent.mkdir(parents=True, exist_ok=True)
-    results.write_text(json.dumps(merged, indent=1) + "\n")
+    results.write_text("[\n" + ",\n".join(json.dumps(r) for r in merged) + "\n]\n")  # a row per line: diffs by row
     return merged
 
 
