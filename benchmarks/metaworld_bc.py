@@ -8,8 +8,11 @@ layouts disjoint from the demonstrations, for each decoder and sampling budget.
         --steps 6000 --seeds 0 --runs runs/metaworld_mt10 --table docs/benchmarks/metaworld_mt10.md
 
 Every (task, seed, decoder) run lives in its own directory under --runs and is skipped when
-already complete, so the grid can be stopped and continued. The table is written to
-docs/benchmarks/metaworld_bc.md from whatever runs exist.
+already complete, so the grid can be stopped and continued. Finished evaluations are merged,
+one row each, into --results (docs/benchmarks/metaworld_bc.json), which a later session's
+run also skips: the grid can be finished over several sessions. The table in
+docs/benchmarks/metaworld_bc.md is rebuilt from the rows of today's recipe (demos, training
+steps, episodes, state layout and shift); text below its notes marker is kept.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from action_decoder.train import DEFAULT_SHIFT
+
 # (decoder, sampler, steps) columns of the table; the first per decoder is its default.
 METHODS = [("DDPM", "ode", 10), ("flow_matching", "ode", 10), ("flow_matching", "ode", 1),
            ("mean_flow", "ode", 1), ("mean_flow", "ode", 2), ("mlp_baseline", "ode", 10), ("mlp_baseline", "ode", 1)]
@@ -31,6 +36,7 @@ LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=
           ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
           ("mlp_baseline", "ode", 1): "MLP ref. K=1"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
+NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 
 
 def _run(cmd: list[str], log: Path) -> None:
@@ -41,6 +47,8 @@ def _run(cmd: list[str], log: Path) -> None:
 
 def run_one(task: str, seed: int, decoder: str, args) -> None:
     """Train one policy (if not yet trained), then evaluate it at each of its sampling budgets."""
+    if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
+        return                          # measured in an earlier session: kept in --results
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"     # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
@@ -61,42 +69,94 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
                   "--sampler", sampler, "--steps", str(k), "--seed", str(seed), "--output", str(out)], log)
 
 
-def collect(runs: Path) -> dict:
-    """{task: {method: [success per seed]}} from the eval JSON files present (a multi-task
-    policy contributes one entry per task)."""
-    table: dict = {}
+def recipe(run: Path) -> dict:
+    """How a run's policy was trained: demos, training steps, state layout and shift (read from
+    its checkpoint; the MLP reference records its own)."""
+    config = run / "final" / "config.json"
+    if not config.is_file():
+        return {}
+    train = json.loads(config.read_text())["extra"]["train"]
+    from action_decoder.train import TrainConfig, augment_shift, state_layout
+
+    cfg = TrainConfig(**train)
+    return {"demos": cfg.demos, "train_steps": cfg.steps, "state_layout": state_layout(cfg),
+            "augment_shift": augment_shift(cfg)}
+
+
+def collect(runs: Path) -> list[dict]:
+    """One row per (task, seed, method) from the eval JSON files present (a multi-task policy
+    contributes one row per task)."""
+    rows = []
     for path in sorted(runs.glob("*/eval_*.json")):
         res = json.loads(path.read_text())
-        method = (res["decoder_type"], res["sampler"], res["steps"])
+        how = res.get("recipe") or recipe(path.parent)
         for task, success in res["per_task"].items():
-            table.setdefault(task, {}).setdefault(method, []).append(success)
+            rows.append({"task": task, "seed": res.get("seed", 0), "decoder": res["decoder_type"],
+                         "sampler": res["sampler"], "steps": res["steps"],
+                         "episodes": res.get("episodes_per_task"), **how, "success": success})
+    return rows
+
+
+ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "train_steps", "state_layout",
+           "augment_shift")
+
+
+def merge(results: Path, rows: list[dict]) -> list[dict]:
+    """Rows kept in `results` from earlier sessions, replaced by fresh rows of the same run; written
+    back (a row per line) so that the grid can be finished over several sessions."""
+    def key(r):
+        return tuple(str(r.get(k)) for k in ROW_KEY)
+
+    kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
+    kept.update({key(r): r for r in rows})
+    merged = sorted(kept.values(), key=key)
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text("[\n" + ",\n".join(json.dumps(r) for r in merged) + "\n]\n")
+    return merged
+
+
+def matching(rows: list[dict], want: dict) -> list[dict]:
+    """The rows trained and evaluated as `want` says (other recipes stay in the file, not the table).
+    A key a row lacks matches anything: the MLP reference has its own fixed training budget."""
+    return [r for r in rows if all(r.get(k, v) == v for k, v in want.items())]
+
+
+def tabulate(rows: list[dict]) -> dict:
+    """{task: {method: [success per seed]}}."""
+    table: dict = {}
+    for r in rows:
+        table.setdefault(r["task"], {}).setdefault((r["decoder"], r["sampler"], r["steps"]), []).append(r["success"])
     return table
 
 
-def write_table(table: dict, path: Path, args) -> str:
+def write_table(table: dict, path: Path, args, results: Path) -> str:
     methods = [m for m in METHODS if any(m in row for row in table.values())]
     lines = ["| task | " + " | ".join(LABELS[m] for m in methods) + " |",
              "|---|" + "---:|" * len(methods)]
-    means = {m: [] for m in methods}
+    # Columns are compared on the same tasks: the mean row skips a task any column lacks.
+    complete = [t for t in table if all(m in table[t] for m in methods)]
+    means = {m: [statistics.mean(table[t][m]) for t in complete] for m in methods}
     for task in sorted(table):
         cells = []
         for m in methods:
             vals = table[task].get(m, [])
             if vals:
-                means[m].append(statistics.mean(vals))
                 sd = f" ± {100 * statistics.stdev(vals):.0f}" if len(vals) > 1 else ""
                 cells.append(f"{100 * statistics.mean(vals):.0f}{sd} ({len(vals)})")
             else:
                 cells.append("–")
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
-    lines.append("| **mean** | " + " | ".join(
+    lines.append(f"| **mean ({len(complete)} tasks with every column)** | " + " | ".join(
         f"**{100 * statistics.mean(means[m]):.1f}**" if means[m] else "–" for m in methods) + " |")
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
             f"{args.demos} demonstrations per task, {args.steps} training steps, "
-            f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations.\n\n"
+            f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations; "
+            f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
+            f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
             + "\n".join(lines) + "\n")
+    notes = path.read_text().partition(NOTES)[2] if path.is_file() else ""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    path.write_text(text + f"\n{NOTES}" + (notes or "\n"))   # the hand-written part below the table stays
     return text
 
 
@@ -107,11 +167,15 @@ def main(argv=None) -> None:
     p.add_argument("--decoders", nargs="+", default=["DDPM", "flow_matching", "mean_flow", "mlp_baseline"],
                    help="mlp_baseline: the plain-MLP flow-matching reference (benchmarks/mlp_baseline.py)")
     p.add_argument("--demos", type=int, default=10)
-    p.add_argument("--steps", type=int, default=1500)
+    p.add_argument("--steps", type=int, default=5000, help="training steps (the main job trains 1500)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
     p.add_argument("--runs", default="runs/metaworld_bc")
     p.add_argument("--table", default="docs/benchmarks/metaworld_bc.md")
+    p.add_argument("--results", default=None,
+                   help="rows kept across sessions (default: --table with .json); the table is built from them")
+    p.add_argument("--report-only", action="store_true",
+                   help="train nothing: merge the finished runs into --results and rebuild the table")
     p.add_argument("--multitask", action="store_true",
                    help="train one policy on all of --tasks (task given through the context path)")
     args = p.parse_args(argv)
@@ -120,11 +184,18 @@ def main(argv=None) -> None:
     tasks = [args.tasks] if args.multitask else [f"metaworld/{t}" for t in resolve_tasks(args.tasks)]
     if args.multitask and "mlp_baseline" in args.decoders:
         p.error("--multitask: the mlp_baseline reference has no task conditioning; drop it from --decoders")
-    grid = [(t, s, d) for t in tasks for s in args.seeds for d in args.decoders]
+    results = Path(args.results or Path(args.table).with_suffix(".json"))
+    want = {"demos": args.demos, "train_steps": args.steps, "episodes": args.episodes,
+            "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT}
+    args.done = {}
+    for r in [] if args.multitask else matching(merge(results, []), want):
+        args.done.setdefault((f"metaworld/{r['task']}", r["seed"]), set()).add((r["decoder"], r["sampler"], r["steps"]))
+    grid = [] if args.report_only else [(t, s, d) for t in tasks for s in args.seeds for d in args.decoders]
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()
-    print(write_table(collect(Path(args.runs)), Path(args.table), args))
+    rows = merge(results, collect(Path(args.runs)))
+    print(write_table(tabulate(matching(rows, want)), Path(args.table), args, results))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
 """The reference the MP1 benchmark is judged against: a plain ~190k-parameter MLP velocity
 trained with our `flow_matching_loss` and sampled with our `sample_ode` (chunk 16, execute 8),
-on the same demonstrations, normalisation and evaluation layouts as the Action Expert runs.
-Only the network differs, so the gap between the two columns is the network's.
+on the same demonstrations, normalisation, state inputs (relative positions), shift
+augmentation and evaluation layouts as the Action Expert runs. Only the network differs, so
+the gap between the two columns is the network's. `--state-layout flat` is the plain MLP that
+NOTES.md measured (≈ 80 % on 17 tasks).
 
     python -m benchmarks.mlp_baseline --task metaworld/pick-place --seed 0
 
@@ -24,6 +26,8 @@ from action_decoder.data import ChunkDataset, load_demos
 from action_decoder.envs import evaluate
 from action_decoder.flows import flow_matching_loss, sample_ode
 from action_decoder.normalize import make_normalizers
+from action_decoder.state_layout import feature_dim, relative_positions, shift_positions
+from action_decoder.train import DEFAULT_SHIFT
 
 
 class MLPVelocity(nn.Module):
@@ -46,35 +50,46 @@ class MLPVelocity(nn.Module):
 
 
 def run(task: str, seed: int, demos: int = 10, steps: int = 5000, batch_size: int = 256, episodes: int = 50,
-        ks: tuple[int, ...] = (10, 1), horizon: int = 16, n_action_steps: int = 8, norm: str = "mean_std") -> dict:
-    """Train on `demos` demonstrations of `task` (demo subset = `seed`), evaluate at each K."""
+        ks: tuple[int, ...] = (10, 1), horizon: int = 16, n_action_steps: int = 8, norm: str = "mean_std",
+        layout: str = "metaworld", shift: float = DEFAULT_SHIFT) -> dict:
+    """Train on `demos` demonstrations of `task` (demo subset = `seed`), evaluate at each K.
+    `layout` and `shift` are the policy's state layout and the training's shift augmentation."""
     torch.manual_seed(seed)
     ds = ChunkDataset(load_demos(task, demos, seed), horizon)
     norms = make_normalizers(ds.states.shape[1], ds.actions.shape[1], norm, ds.stats)
     frames = [ds[i] for i in range(len(ds))]
-    states = norms["state"].normalize(torch.stack([f["state"] for f in frames]))        # [N, S]
+    states = torch.stack([f["state"] for f in frames])                                  # [N, S]
     actions = norms["actions"].normalize(torch.stack([f["actions"] for f in frames]))   # [N, H, D]
-    net = MLPVelocity(states.shape[1], horizon, actions.shape[2])
+
+    def inputs(raw: Tensor) -> Tensor:        # what the Action Expert reads, see ActionDecoderPolicy
+        x = norms["state"].normalize(raw)
+        return torch.cat([x, relative_positions(raw)], -1) if layout == "metaworld" else x
+
+    net = MLPVelocity(states.shape[1] + feature_dim(layout), horizon, actions.shape[2])
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     gen = torch.Generator().manual_seed(seed)
     t0 = time.perf_counter()
     for _ in range(steps):
         idx = torch.randint(len(states), (batch_size,), generator=gen)
-        loss = flow_matching_loss(net, actions[idx], generator=gen, cond={"state": states[idx]})
+        raw = states[idx]
+        if shift > 0:
+            raw = shift_positions(raw, (2 * torch.rand(batch_size, 2, generator=gen) - 1) * shift)
+        loss = flow_matching_loss(net, actions[idx], generator=gen, cond={"state": inputs(raw)})
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         sched.step()
     train_s = time.perf_counter() - t0
     net.eval()
-    out = {"task": task, "seed": seed, "params": sum(p.numel() for p in net.parameters()), "train_s": train_s}
+    out = {"task": task, "seed": seed, "params": sum(p.numel() for p in net.parameters()), "train_s": train_s,
+           "recipe": {"demos": demos, "state_layout": layout, "augment_shift": shift}}
     for k in ks:
         sample_gen = torch.Generator().manual_seed(seed)
 
         @torch.no_grad()
         def policy_fn(s, _task_index, k=k, sample_gen=sample_gen):
-            st = norms["state"].normalize(torch.as_tensor(s, dtype=torch.float32))
+            st = inputs(torch.as_tensor(s, dtype=torch.float32))
             noise = torch.randn((len(st), horizon, actions.shape[2]), generator=sample_gen)
             x = sample_ode(lambda z, t: net(z, t, st), noise, k)
             return norms["actions"].unnormalize(x).numpy()
@@ -92,7 +107,7 @@ def write_evals(res: dict, out_dir: Path, ks: tuple[int, ...]) -> None:
         (out_dir / f"eval_ode_k{k}.json").write_text(json.dumps({
             "checkpoint": None, "decoder_type": "mlp_baseline", "sampler": "ode", "steps": k,
             "episodes_per_task": len(r["successes"]), "seed": res["seed"], "success_rate": r["success_rate"],
-            "per_task": {r["task"]: r["success_rate"]}, "results": [r], "params": res["params"],
+            "per_task": {r["task"]: r["success_rate"]}, "results": [r], "params": res["params"], "recipe": res["recipe"],
             "train_s": res["train_s"]}, indent=1))
 
 
@@ -106,11 +121,16 @@ def main(argv=None) -> None:
     p.add_argument("--horizon", type=int, default=16)
     p.add_argument("--n-action-steps", type=int, default=8)
     p.add_argument("--norm", default="mean_std", choices=["mean_std", "min_max"])
+    p.add_argument("--state-layout", default="metaworld", choices=["metaworld", "flat"],
+                   help="flat: the plain MLP of NOTES.md (normalised state only, no shift augmentation)")
+    p.add_argument("--augment-shift", type=float, default=None, help="metres (default: as `action-decoder train`)")
     p.add_argument("--output-dir", default=None, help="directory for eval_ode_k{K}.json files")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     res = run(args.task, args.seed, demos=args.demos, steps=args.steps, episodes=args.episodes, horizon=args.horizon,
-              n_action_steps=args.n_action_steps, norm=args.norm)
+              n_action_steps=args.n_action_steps, norm=args.norm, layout=args.state_layout,
+              shift=(DEFAULT_SHIFT if args.state_layout == "metaworld" else 0.0) if args.augment_shift is None
+              else args.augment_shift)
     print(json.dumps({k: v for k, v in res.items() if not k.startswith("result_")}))
     if args.output_dir:
         write_evals(res, Path(args.output_dir), (10, 1))

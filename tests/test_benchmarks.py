@@ -63,18 +63,57 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     res = mlp_baseline.run("metaworld/reach", seed=0, demos=2, steps=20, batch_size=8, episodes=2, ks=(2, 1))
     assert 150_000 < res["params"] < 200_000            # the ~190k-parameter reference of the issue
     mlp_baseline.write_evals(res, tmp_path / "runs" / "reach-v3_s0_mlp_baseline", (2, 1))
-    table = metaworld_bc.collect(tmp_path / "runs")
-    assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
+    rows = metaworld_bc.collect(tmp_path / "runs")
+    assert {(r["steps"], r["success"], r["state_layout"], r["augment_shift"]) for r in rows} == {
+        (2, res["success_k2"], "metaworld", 0.05), (1, res["success_k1"], "metaworld", 0.05)}
+    want = {"demos": 2, "train_steps": 1500, "episodes": 2, "state_layout": "metaworld", "augment_shift": 0.05}
+    assert len(metaworld_bc.matching(rows, want)) == 2, "the MLP's own budget matches any decoder budget"
 
     # A multi-task policy's evaluation contributes one row per task.
     mt = tmp_path / "runs" / "MT10_s0_flow_matching"
     mt.mkdir()
     (mt / "eval_ode_k10.json").write_text(json.dumps(
-        {"decoder_type": "flow_matching", "sampler": "ode", "steps": 10, "success_rate": 0.55,
-         "per_task": {"reach-v3": 0.9, "push-v3": 0.2}}))
-    table = metaworld_bc.collect(tmp_path / "runs")
+        {"decoder_type": "flow_matching", "sampler": "ode", "steps": 10, "success_rate": 0.55, "seed": 0,
+         "per_task": {"reach-v3": 0.9, "push-v3": 0.2}, "recipe": {"demos": 2, "train_steps": 20}}))
+    table = metaworld_bc.tabulate(metaworld_bc.collect(tmp_path / "runs"))
     assert table["push-v3"] == {("flow_matching", "ode", 10): [0.2]}
     assert table["reach-v3"][("flow_matching", "ode", 10)] == [0.9]
+    assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
+
+
+def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_path):
+    from benchmarks import metaworld_bc
+
+    def row(task, seed, success, train_steps=1500):
+        return {"task": task, "seed": seed, "decoder": "mean_flow", "sampler": "ode", "steps": 1, "episodes": 50,
+                "demos": 10, "train_steps": train_steps, "state_layout": "metaworld", "augment_shift": 0.05,
+                "success": success}
+
+    results = tmp_path / "bc.json"
+    metaworld_bc.merge(results, [row("push-v3", 0, 0.5), row("push-v3", 1, 0.7), row("push-v3", 0, 0.1, 5000)])
+    merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3)])   # a later session
+    assert len(merged) == 4 and len(results.read_text().splitlines()) == 6     # one row per line
+    want = {"demos": 10, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld", "augment_shift": 0.05}
+    table = metaworld_bc.tabulate(metaworld_bc.matching(merged, want))
+    assert table == {"push-v3": {("mean_flow", "ode", 1): [0.9, 0.7]}, "hammer-v3": {("mean_flow", "ode", 1): [0.3]}}
+
+    # A run whose rows a results file already holds is not trained again.
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "done": {
+        ("metaworld/push-v3", 0): {("mean_flow", "ode", 1), ("mean_flow", "ode", 2)}}})
+    metaworld_bc.run_one("metaworld/push-v3", 0, "mean_flow", args)      # would need demos and minutes
+    assert not (tmp_path / "runs").exists()
+
+    # The table is rebuilt; what was written below it by hand stays.
+    args = type("Args", (), {"demos": 10, "steps": 1500, "episodes": 50})
+    md = tmp_path / "bc.md"
+    metaworld_bc.write_table(table, md, args, results)
+    md.write_text(md.read_text() + "What the table says.\n")
+    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): [0.5]}}, md, args, results)
+    assert "| push-v3 | 50 (1) |" in text and "hammer" not in md.read_text()
+    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): [0.5], ("flow_matching", "ode", 1): [1.0]},
+                                     "hammer-v3": {("mean_flow", "ode", 1): [0.1]}}, md, args, results)
+    assert "| **mean (1 tasks with every column)** | **100.0** | **50.0** |" in text, "hammer lacks FM: not in the mean"
+    assert md.read_text().endswith(metaworld_bc.NOTES + "\nWhat the table says.\n")
 
 
 def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tmp_path):

@@ -39,6 +39,7 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     assert not torch.equal(averaged["model.action_in.weight"], raw["model.action_in.weight"]), \
         "final/ should hold the weight average, not the raw weights"
     assert policy.config.decoder_type == "flow_matching" and policy.config.extra["tasks"] == ["reach-v3"]
+    assert policy.config.state_layout == "metaworld", "Meta-World tasks train with relative positions"
     res = run(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
                "--sampler", "sde", "--steps", "3"], env)
     assert res.returncode == 0, res.stderr
@@ -54,6 +55,7 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     (["train", "--task", "metaworld/fly-to-moon"], "fly-to-moon"),
     (["eval", "--checkpoint", "/nonexistent/ckpt"], "config.json"),
     (["train", "--steps", "0"], "--steps"),
+    (["train", "--dataset", "/nonexistent/ds", "--augment-shift", "0.1"], "--augment-shift"),
     (["eval", "--checkpoint", "CKPT", "--sampler", "sde"], "sampler"),
 ])
 def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
+from .state_layout import METAWORLD_STATE_DIM, STATE_LAYOUTS, feature_dim
+
 DECODER_TYPES = ("DDPM", "flow_matching", "mean_flow")
 PREDICTION_TYPES = ("epsilon", "sample")
 # The DDPM schedules diffusers' DDPMScheduler and DPMSolverMultistepScheduler both accept.
@@ -48,7 +50,7 @@ class DecoderConfig:
     flow_sde_return_logprob: bool = False
     flow_sde_logprob_sigma_only: bool = True
     # --- MeanFlow training recipe (NOTES §2); times in our convention (t = 0 noise) ---
-    meanflow_ratio_r_neq_t: float = 0.5
+    meanflow_ratio_r_neq_t: float = 0.25
     meanflow_time_dist: str = "uniform"     # "logit_normal" (the paper) or "uniform" (see README)
     meanflow_time_mean: float = 0.4
     meanflow_time_std: float = 1.0
@@ -72,6 +74,7 @@ class DecoderConfig:
     # --- policy ---
     n_action_steps: int = 8
     normalization_mode: str = "mean_std"
+    state_layout: str = "flat"   # "metaworld": relative positions appended (state_layout.py)
     default_ctrl_freq: float = 10.0
     extra: dict = field(default_factory=dict)  # free-form, carried through save/load
 
@@ -85,6 +88,7 @@ class DecoderConfig:
         _choice("beta_schedule", self.beta_schedule, BETA_SCHEDULES)
         _choice("flow_sde_mode", self.flow_sde_mode, SDE_MODES)
         _choice("normalization_mode", self.normalization_mode, NORMALIZATION_MODES)
+        _choice("state_layout", self.state_layout, STATE_LAYOUTS)
         _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
         for name in ("num_train_timesteps", "num_inference_timesteps", "action_chunk_size",
                      "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
@@ -124,6 +128,9 @@ class DecoderConfig:
         if self.flow_sde_use and self.decoder_type == "DDPM":
             raise ValueError("flow_sde_use: the SDE sampler serves flow_matching and mean_flow; "
                              "decoder_type='DDPM' samples with DPM-Solver (set flow_sde_use=False)")
+        if self.state_layout == "metaworld" and self.state_dim != METAWORLD_STATE_DIM:
+            raise ValueError(f"state_dim: state_layout='metaworld' expects Meta-World's "
+                             f"{METAWORLD_STATE_DIM}-d state, got state_dim={self.state_dim}")
         if not isinstance(self.extra, dict):
             raise ValueError(f"extra: expected a dict, got {type(self.extra).__name__}")
 
@@ -131,6 +138,11 @@ class DecoderConfig:
     @property
     def default_sampler(self) -> str:
         return "sde" if self.flow_sde_use else "ode"
+
+    @property
+    def state_input_dim(self) -> int:
+        """Width of what the network reads: the normalised state and the layout's features."""
+        return self.state_dim + feature_dim(self.state_layout)
 
     @property
     def uses_vlm_cache(self) -> bool:

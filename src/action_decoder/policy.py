@@ -22,6 +22,7 @@ from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow)
 from .normalize import make_normalizers
+from .state_layout import relative_positions
 
 SAMPLERS = (None, "ode", "sde", "euler")
 CONFIG_NAME, WEIGHTS_NAME = "config.json", "model.safetensors"
@@ -108,7 +109,10 @@ class ActionDecoderPolicy(nn.Module):
     def _prepare(self, batch: Mapping[str, Any]) -> dict:
         """Normalised state, ctrl_freq and the conditioning prefix (built once)."""
         param = next(self.model.parameters())
-        state = self.normalizers["state"].normalize(batch["state"].to(param.device, torch.float32))
+        raw = batch["state"].to(param.device, torch.float32)
+        state = self.normalizers["state"].normalize(raw)                      # [B, state_dim]
+        if self.config.state_layout == "metaworld":
+            state = torch.cat([state, relative_positions(raw)], dim=-1)      # [B, state_input_dim]
         ctrl = batch.get("ctrl_freq")
         prefix = self.model.build_prefix(
             context=_to(batch.get("context"), param.device), context_mask=_to(batch.get("context_mask"), param.device),

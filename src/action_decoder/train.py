@@ -24,6 +24,7 @@ from torch.utils.data import default_collate
 
 from .config import DecoderConfig
 from .policy import ActionDecoderPolicy
+from .state_layout import shift_positions
 
 CKPT_DIR, LAST, FINAL = "checkpoints", "last", "final"
 
@@ -53,6 +54,12 @@ class TrainConfig:
     ema_decay: float = 0.999
     """Ceiling of the decay of the weight average that `final/` holds (0: the raw weights); warmed
     up as 1 − (1 + n)^(−3/4) so that the random initial weights fade within the first steps."""
+    state_layout: Literal["auto", "flat", "metaworld"] = "auto"
+    """What the state vector is (auto: metaworld for Meta-World tasks, flat for --dataset). With
+    metaworld the policy appends relative positions and training shifts layouts (state_layout.py)."""
+    augment_shift: Optional[float] = None
+    """Largest horizontal shift, in metres, of the whole scene per training sample (None: 0.05 with
+    the metaworld layout, 0 with flat; needs the metaworld layout)."""
     horizon: int = 16
     """Action chunk length H."""
     n_action_steps: int = 8
@@ -65,7 +72,7 @@ class TrainConfig:
     num_kv_heads: int = 2
     prediction_type: Literal["epsilon", "sample"] = "sample"
     """DDPM's target."""
-    meanflow_ratio_r_neq_t: float = 0.5
+    meanflow_ratio_r_neq_t: float = 0.25
     """MeanFlow: fraction of (t, r) pairs with r ≠ t."""
     meanflow_adaptive_p: float = 0.5
     """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
@@ -117,9 +124,31 @@ def task_context(task_index: torch.Tensor, num_tasks: int) -> dict:
     return {"context": onehot[:, None, :]}                                 # [B, 1, num_tasks]
 
 
+DEFAULT_SHIFT = 0.05
+
+
+def state_layout(cfg: TrainConfig) -> str:
+    if cfg.state_layout != "auto":
+        return cfg.state_layout
+    return "flat" if cfg.dataset is not None else "metaworld"
+
+
+def augment_shift(cfg: TrainConfig) -> float:
+    """The shift augmentation's range; only Meta-World's layout says where the positions are."""
+    layout = state_layout(cfg)
+    if cfg.augment_shift is None:
+        return DEFAULT_SHIFT if layout == "metaworld" else 0.0
+    if not math.isfinite(cfg.augment_shift) or cfg.augment_shift < 0:
+        raise ValueError(f"--augment-shift: expected a distance >= 0 in metres, got {cfg.augment_shift}")
+    if cfg.augment_shift > 0 and layout != "metaworld":
+        raise ValueError(f"--augment-shift: shifting positions needs --state-layout metaworld, got "
+                         f"--state-layout {cfg.state_layout} ({layout}) with --augment-shift {cfg.augment_shift}")
+    return cfg.augment_shift
+
+
 def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: list[str]) -> DecoderConfig:
     k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
-    return DecoderConfig(
+    return DecoderConfig(state_layout=state_layout(cfg),
         decoder_type=cfg.decoder, prediction_type=cfg.prediction_type, num_inference_timesteps=k,
         action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, state_dim=state_dim,
         action_dim=action_dim, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
@@ -130,9 +159,14 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         extra={"tasks": tasks, "train": asdict(cfg)})
 
 
-def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device) -> dict:
+def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: float = 0.0,
+           generator: Optional[torch.Generator] = None) -> dict:
     items = default_collate([ds[int(i)] for i in idx])
-    batch = {"state": items["state"].to(device), "actions": items["actions"].to(device)}
+    state = items["state"]                                                 # [B, S]
+    if shift > 0:
+        offset = (2 * torch.rand(len(state), 2, generator=generator) - 1) * shift   # [B, 2] metres
+        state = shift_positions(state, offset)
+    batch = {"state": state.to(device), "actions": items["actions"].to(device)}
     batch.update({k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()})
     return batch
 
@@ -250,6 +284,7 @@ def train(cfg: TrainConfig) -> Path:
     out = Path(cfg.output_dir)
     main = rank == 0
 
+    shift = augment_shift(cfg)
     ds, tasks = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
     torch.manual_seed(cfg.seed)
@@ -305,7 +340,7 @@ def train(cfg: TrainConfig) -> Path:
     t0, running = time.perf_counter(), []
     for step in range(start, cfg.steps):
         idx = torch.randint(len(ds), (local_batch,), generator=data_gen)
-        batch = _batch(ds, idx, len(tasks), device)
+        batch = _batch(ds, idx, len(tasks), device, shift, data_gen)
         loss = model(batch, generator=loss_gen).loss
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

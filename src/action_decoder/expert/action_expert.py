@@ -41,7 +41,7 @@ class ActionExpert(nn.Module):
         self.t_embed = ScalarEmbedding(hidden, TIME_PERIODS)
         self.r_embed = ScalarEmbedding(hidden, TIME_PERIODS)
         self.freq_embed = ScalarEmbedding(hidden, FREQ_PERIODS)
-        self.state_in = nn.Linear(config.state_dim, hidden)
+        self.state_in = nn.Linear(config.state_input_dim, hidden)
         self.action_in = nn.Linear(config.action_dim, hidden)
         self.conditioning = ConditioningEncoder(config)
         self.blocks = nn.ModuleList(
@@ -81,7 +81,8 @@ class ActionExpert(nn.Module):
     def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
                 ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:
         """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow);
-        state [B, state_dim]; ctrl_freq [B] Hz (None: config.default_ctrl_freq).
+        state [B, state_input_dim] (normalised, with the layout's features); ctrl_freq [B] Hz
+        (None: config.default_ctrl_freq).
         Returns [B, H, action_dim] in x's dtype."""
         b, horizon, _ = self._check(x, state, prefix)
         dtype = self.head.weight.dtype
@@ -112,8 +113,8 @@ class ActionExpert(nn.Module):
         if x.dim() != 3 or x.shape[-1] != cfg.action_dim:
             raise ValueError(f"x: expected shape [B, H, {cfg.action_dim}], got {list(x.shape)}")
         b = x.shape[0]
-        if tuple(state.shape) != (b, cfg.state_dim):
-            raise ValueError(f"state: expected shape [{b}, {cfg.state_dim}], got {list(state.shape)}")
+        if tuple(state.shape) != (b, cfg.state_input_dim):
+            raise ValueError(f"state: expected shape [{b}, {cfg.state_input_dim}], got {list(state.shape)}")
         if prefix is not None:
             if prefix.batch_size != b:
                 raise ValueError(f"prefix: expected batch size {b}, got {prefix.batch_size}")
