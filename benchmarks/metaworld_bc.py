@@ -75,12 +75,13 @@ def recipe(run: Path) -> dict:
     config = run / "final" / "config.json"
     if not config.is_file():
         return {}
-    train = json.loads(config.read_text())["extra"]["train"]
-    from action_decoder.train import TrainConfig, augment_shift, state_layout
-
-    cfg = TrainConfig(**train)
-    return {"demos": cfg.demos, "train_steps": cfg.steps, "state_layout": state_layout(cfg),
-            "augment_shift": augment_shift(cfg)}
+    saved = json.loads(config.read_text())
+    train = saved["extra"]["train"]
+    layout = saved.get("state_layout", "flat")          # absent: saved before layouts existed
+    shift = train.get("augment_shift", 0.0)
+    if shift is None:                                   # the default of `action-decoder train`
+        shift = DEFAULT_SHIFT if layout == "metaworld" else 0.0
+    return {"demos": train["demos"], "train_steps": train["steps"], "state_layout": layout, "augment_shift": shift}
 
 
 def collect(runs: Path) -> list[dict]:
