@@ -23,6 +23,7 @@ import os
 import statistics
 import subprocess
 import sys
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -46,7 +47,8 @@ def _run(cmd: list[str], log: Path) -> None:
 
 
 def run_one(task: str, seed: int, decoder: str, args) -> None:
-    """Train one policy (if not yet trained), then evaluate it at each of its sampling budgets."""
+    """Train one policy (if not yet trained), evaluate it at each of its sampling budgets, and merge
+    its rows into --results at once (a session cut off mid-grid keeps every finished run)."""
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
         return                          # measured in an earlier session: kept in --results
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"     # task: one task, or a group (--multitask)
@@ -56,6 +58,7 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
         if not (run / "eval_ode_k1.json").is_file():
             _run([sys.executable, "-m", "benchmarks.mlp_baseline", "--task", task, "--seed", str(seed),
                   "--demos", str(args.demos), "--episodes", str(args.episodes), "--output-dir", str(run)], log)
+        _keep(run, args)
         return
     if not (run / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (run / "checkpoints" / "last").is_file() else []
@@ -67,6 +70,15 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
         if dec == decoder and not out.is_file():
             _run([*CLI, "eval", "--checkpoint", str(run / "final"), "--episodes", str(args.episodes),
                   "--sampler", sampler, "--steps", str(k), "--seed", str(seed), "--output", str(out)], log)
+    _keep(run, args)
+
+
+_MERGING = threading.Lock()     # runs finish on several threads; the results file has one writer at a time
+
+
+def _keep(run: Path, args) -> None:
+    with _MERGING:
+        merge(args.results, collect(run, "eval_*.json"))
 
 
 def recipe(run: Path) -> dict:
@@ -84,11 +96,11 @@ def recipe(run: Path) -> dict:
     return {"demos": train["demos"], "train_steps": train["steps"], "state_layout": layout, "augment_shift": shift}
 
 
-def collect(runs: Path) -> list[dict]:
+def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
     """One row per (task, seed, method) from the eval JSON files present (a multi-task policy
-    contributes one row per task)."""
+    contributes one row per task); `pattern` "eval_*.json" reads one run directory."""
     rows = []
-    for path in sorted(runs.glob("*/eval_*.json")):
+    for path in sorted(runs.glob(pattern)):
         res = json.loads(path.read_text())
         how = res.get("recipe") or recipe(path.parent)
         for task, success in res["per_task"].items():
@@ -185,7 +197,7 @@ def main(argv=None) -> None:
     tasks = [args.tasks] if args.multitask else [f"metaworld/{t}" for t in resolve_tasks(args.tasks)]
     if args.multitask and "mlp_baseline" in args.decoders:
         p.error("--multitask: the mlp_baseline reference has no task conditioning; drop it from --decoders")
-    results = Path(args.results or Path(args.table).with_suffix(".json"))
+    results = args.results = Path(args.results or Path(args.table).with_suffix(".json"))
     want = {"demos": args.demos, "train_steps": args.steps, "episodes": args.episodes,
             "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT}
     args.done = {}

@@ -103,6 +103,20 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_p
     metaworld_bc.run_one("metaworld/push-v3", 0, "mean_flow", args)      # would need demos and minutes
     assert not (tmp_path / "runs").exists()
 
+    # A finished run's rows reach the results file as soon as the run ends, before the grid does.
+    run = tmp_path / "runs" / "hammer-v3_s0_mean_flow"
+    (run / "final").mkdir(parents=True)
+    (run / "final" / "model.safetensors").touch()
+    for k, success in ((1, 0.25), (2, 0.75)):
+        (run / f"eval_ode_k{k}.json").write_text(json.dumps(
+            {"decoder_type": "mean_flow", "sampler": "ode", "steps": k, "seed": 0, "episodes_per_task": 50,
+             "per_task": {"hammer-v3": success},
+             "recipe": {"demos": 10, "train_steps": 1500, "state_layout": "metaworld", "augment_shift": 0.05}}))
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "done": {}, "results": results})
+    metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
+    kept = [r for r in json.loads(results.read_text()) if r["task"] == "hammer-v3" and r["train_steps"] == 1500]
+    assert sorted((r["steps"], r["success"]) for r in kept) == [(1, 0.25), (2, 0.75)], "the fresh row replaces 0.3"
+
     # The table is rebuilt; what was written below it by hand stays.
     args = type("Args", (), {"demos": 10, "steps": 1500, "episodes": 50})
     md = tmp_path / "bc.md"
