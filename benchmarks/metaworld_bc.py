@@ -11,8 +11,11 @@ Every (task, seed, decoder) run lives in its own directory under --runs and is s
 already complete, so the grid can be stopped and continued. Finished evaluations are merged,
 one row each, into --results (docs/benchmarks/metaworld_bc.json), which a later session's
 run also skips: the grid can be finished over several sessions. The table in
-docs/benchmarks/metaworld_bc.md is rebuilt from the rows of today's recipe (demos, training
-steps, episodes, state layout and shift); text below its notes marker is kept.
+docs/benchmarks/metaworld_bc.md is rebuilt from the rows of today's recipe (demos and their
+recording noise, training steps, episodes, state layout and shift); text below its notes marker
+is kept. Beside the decoders stand two references: the plain-MLP policy the issue measured
+(`mlp_baseline`) and the scripted expert that made the demonstrations (`scripted_expert`, the
+ceiling), on the same evaluation layouts.
 """
 
 from __future__ import annotations
@@ -27,15 +30,16 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from action_decoder.train import DEFAULT_SHIFT
+from action_decoder.train import DEFAULT_SHIFT, TrainConfig
 
 # (decoder, sampler, steps) columns of the table; the first per decoder is its default.
 METHODS = [("DDPM", "ode", 10), ("flow_matching", "ode", 10), ("flow_matching", "ode", 1),
-           ("mean_flow", "ode", 1), ("mean_flow", "ode", 2), ("mlp_baseline", "ode", 10), ("mlp_baseline", "ode", 1)]
+           ("mean_flow", "ode", 1), ("mean_flow", "ode", 2), ("mlp_baseline", "ode", 10), ("mlp_baseline", "ode", 1),
+           ("scripted_expert", "expert", 1)]
 LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=10",
           ("flow_matching", "ode", 1): "FM K=1", ("mean_flow", "ode", 1): "MF K=1",
           ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
-          ("mlp_baseline", "ode", 1): "MLP ref. K=1"}
+          ("mlp_baseline", "ode", 1): "MLP ref. K=1", ("scripted_expert", "expert", 1): "expert"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 
@@ -51,18 +55,27 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     its rows into --results at once (a session cut off mid-grid keeps every finished run)."""
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
         return                          # measured in an earlier session: kept in --results
-    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}_{decoder}"     # task: one task, or a group (--multitask)
+    noise = f"_noise{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
+    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{noise}_{decoder}"  # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
+    if decoder == "scripted_expert":    # the ceiling: the demonstrator on the same evaluation layouts
+        if not (run / "eval_expert.json").is_file():
+            _run([sys.executable, "-m", "benchmarks.scripted_expert", "--task", task, "--seed", str(seed),
+                  "--episodes", str(args.episodes), "--output-dir", str(run)], log)
+        _keep(run, args)
+        return
     if decoder == "mlp_baseline":       # the reference network: trains and evaluates in one go
         if not (run / "eval_ode_k1.json").is_file():
             _run([sys.executable, "-m", "benchmarks.mlp_baseline", "--task", task, "--seed", str(seed),
-                  "--demos", str(args.demos), "--episodes", str(args.episodes), "--output-dir", str(run)], log)
+                  "--demos", str(args.demos), "--demo-noise", str(args.demo_noise), "--episodes", str(args.episodes),
+                  "--output-dir", str(run)], log)
         _keep(run, args)
         return
     if not (run / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (run / "checkpoints" / "last").is_file() else []
-        _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos), "--steps",
+        _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos),
+              "--demo-noise", str(args.demo_noise), "--steps",
               str(args.steps), "--seed", str(seed), "--output-dir", str(run), "--eval-episodes", "0",
               "--no-progress", *resume], log)
     for dec, sampler, k in METHODS:
@@ -82,8 +95,8 @@ def _keep(run: Path, args) -> None:
 
 
 def recipe(run: Path) -> dict:
-    """How a run's policy was trained: demos, training steps, state layout and shift (read from
-    its checkpoint; the MLP reference records its own)."""
+    """How a run's policy was trained: demos and their action noise, training steps, state layout
+    and shift (read from its checkpoint; the MLP reference records its own)."""
     config = run / "final" / "config.json"
     if not config.is_file():
         return {}
@@ -93,7 +106,8 @@ def recipe(run: Path) -> dict:
     shift = train.get("augment_shift", 0.0)
     if shift is None:                                   # the default of `action-decoder train`
         shift = DEFAULT_SHIFT if layout == "metaworld" else 0.0
-    return {"demos": train["demos"], "train_steps": train["steps"], "state_layout": layout, "augment_shift": shift}
+    return {"demos": train["demos"], "demo_noise": train.get("demo_noise", 0.0), "train_steps": train["steps"],
+            "state_layout": layout, "augment_shift": shift}
 
 
 def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
@@ -103,6 +117,8 @@ def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
     for path in sorted(runs.glob(pattern)):
         res = json.loads(path.read_text())
         how = res.get("recipe") or recipe(path.parent)
+        if how:                         # the scripted expert has no recipe: its rows match any
+            how = {"demo_noise": 0.0, **how}    # runs from before recording noise existed were clean
         for task, success in res["per_task"].items():
             rows.append({"task": task, "seed": res.get("seed", 0), "decoder": res["decoder_type"],
                          "sampler": res["sampler"], "steps": res["steps"],
@@ -110,8 +126,8 @@ def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
     return rows
 
 
-ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "train_steps", "state_layout",
-           "augment_shift")
+ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "demo_noise", "train_steps",
+           "state_layout", "augment_shift")
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
@@ -162,7 +178,9 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     lines.append(f"| **mean ({len(complete)} tasks with every column)** | " + " | ".join(
         f"**{100 * statistics.mean(means[m]):.1f}**" if means[m] else "–" for m in methods) + " |")
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
-            f"{args.demos} demonstrations per task, {args.steps} training steps, "
+            f"{args.demos} demonstrations per task"
+            + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
+            + f", {args.steps} training steps, "
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations; "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
             f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
@@ -177,9 +195,14 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="metaworld/medium,metaworld/hard,metaworld/very_hard")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    p.add_argument("--decoders", nargs="+", default=["DDPM", "flow_matching", "mean_flow", "mlp_baseline"],
-                   help="mlp_baseline: the plain-MLP flow-matching reference (benchmarks/mlp_baseline.py)")
+    p.add_argument("--decoders", nargs="+",
+                   default=["DDPM", "flow_matching", "mean_flow", "mlp_baseline", "scripted_expert"],
+                   help="mlp_baseline: the plain-MLP flow-matching reference (benchmarks/mlp_baseline.py); "
+                        "scripted_expert: the demonstrator itself, the ceiling (benchmarks/scripted_expert.py)")
     p.add_argument("--demos", type=int, default=10)
+    p.add_argument("--demo-noise", type=float, default=TrainConfig.demo_noise,
+                   help="std of the noise on the expert's executed actions while recording (DART; the table "
+                        "keeps one value)")
     p.add_argument("--steps", type=int, default=5000, help="training steps (the main job trains 1500)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
@@ -195,10 +218,10 @@ def main(argv=None) -> None:
     from action_decoder.envs import resolve_tasks
 
     tasks = [args.tasks] if args.multitask else [f"metaworld/{t}" for t in resolve_tasks(args.tasks)]
-    if args.multitask and "mlp_baseline" in args.decoders:
-        p.error("--multitask: the mlp_baseline reference has no task conditioning; drop it from --decoders")
+    if args.multitask and {"mlp_baseline", "scripted_expert"} & set(args.decoders):
+        p.error("--multitask: the mlp_baseline and scripted_expert columns are per task; drop them from --decoders")
     results = args.results = Path(args.results or Path(args.table).with_suffix(".json"))
-    want = {"demos": args.demos, "train_steps": args.steps, "episodes": args.episodes,
+    want = {"demos": args.demos, "demo_noise": args.demo_noise, "train_steps": args.steps, "episodes": args.episodes,
             "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT}
     args.done = {}
     for r in [] if args.multitask else matching(merge(results, []), want):

@@ -27,7 +27,7 @@ from action_decoder.envs import evaluate
 from action_decoder.flows import flow_matching_loss, sample_ode
 from action_decoder.normalize import make_normalizers
 from action_decoder.state_layout import feature_dim, relative_positions, shift_positions
-from action_decoder.train import DEFAULT_SHIFT
+from action_decoder.train import DEFAULT_SHIFT, TrainConfig
 
 
 class MLPVelocity(nn.Module):
@@ -51,11 +51,12 @@ class MLPVelocity(nn.Module):
 
 def run(task: str, seed: int, demos: int = 10, steps: int = 5000, batch_size: int = 256, episodes: int = 50,
         ks: tuple[int, ...] = (10, 1), horizon: int = 16, n_action_steps: int = 8, norm: str = "mean_std",
-        layout: str = "metaworld", shift: float = DEFAULT_SHIFT) -> dict:
-    """Train on `demos` demonstrations of `task` (demo subset = `seed`), evaluate at each K.
-    `layout` and `shift` are the policy's state layout and the training's shift augmentation."""
+        layout: str = "metaworld", shift: float = DEFAULT_SHIFT, demo_noise: float = 0.0) -> dict:
+    """Train on `demos` demonstrations of `task` (demo subset = `seed`, recorded with `demo_noise`),
+    evaluate at each K. `layout` and `shift` are the policy's state layout and the training's shift
+    augmentation."""
     torch.manual_seed(seed)
-    ds = ChunkDataset(load_demos(task, demos, seed), horizon)
+    ds = ChunkDataset(load_demos(task, demos, seed, demo_noise), horizon)
     norms = make_normalizers(ds.states.shape[1], ds.actions.shape[1], norm, ds.stats)
     frames = [ds[i] for i in range(len(ds))]
     states = torch.stack([f["state"] for f in frames])                                  # [N, S]
@@ -83,7 +84,7 @@ def run(task: str, seed: int, demos: int = 10, steps: int = 5000, batch_size: in
     train_s = time.perf_counter() - t0
     net.eval()
     out = {"task": task, "seed": seed, "params": sum(p.numel() for p in net.parameters()), "train_s": train_s,
-           "recipe": {"demos": demos, "state_layout": layout, "augment_shift": shift}}
+           "recipe": {"demos": demos, "demo_noise": demo_noise, "state_layout": layout, "augment_shift": shift}}
     for k in ks:
         sample_gen = torch.Generator().manual_seed(seed)
 
@@ -116,6 +117,8 @@ def main(argv=None) -> None:
     p.add_argument("--task", default="metaworld/pick-place")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--demos", type=int, default=10)
+    p.add_argument("--demo-noise", type=float, default=TrainConfig.demo_noise,
+                   help="std of the noise on the expert's executed actions (default: as `action-decoder train`)")
     p.add_argument("--steps", type=int, default=5000)
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--horizon", type=int, default=16)
@@ -130,7 +133,7 @@ def main(argv=None) -> None:
     res = run(args.task, args.seed, demos=args.demos, steps=args.steps, episodes=args.episodes, horizon=args.horizon,
               n_action_steps=args.n_action_steps, norm=args.norm, layout=args.state_layout,
               shift=(DEFAULT_SHIFT if args.state_layout == "metaworld" else 0.0) if args.augment_shift is None
-              else args.augment_shift)
+              else args.augment_shift, demo_noise=args.demo_noise)
     print(json.dumps({k: v for k, v in res.items() if not k.startswith("result_")}))
     if args.output_dir:
         write_evals(res, Path(args.output_dir), (10, 1))

@@ -3,6 +3,7 @@
 import argparse
 import json
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -58,7 +59,17 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
     for name in [m for m in sys.modules if m == "benchmarks" or m.startswith("benchmarks.")]:
         sys.modules.pop(name)
-    from benchmarks import metaworld_bc, mlp_baseline
+    from benchmarks import metaworld_bc, mlp_baseline, scripted_expert
+
+    # The ceiling column: the demonstrator on the same layouts (reach's expert never misses).
+    args = type("Args", (), {"runs": str(tmp_path / "expert_runs"), "demo_noise": 0.3, "done": {}, "episodes": 2,
+                             "results": tmp_path / "bc.json"})
+    monkeypatch.setattr(metaworld_bc, "_run", lambda cmd, log: scripted_expert.main(cmd[3:]))
+    metaworld_bc.run_one("metaworld/reach-v3", 0, "scripted_expert", args)
+    (row,) = json.loads((tmp_path / "bc.json").read_text())
+    assert (row["decoder"], row["sampler"], row["steps"], row["success"]) == ("scripted_expert", "expert", 1, 1.0)
+    assert metaworld_bc.matching([row], {"demos": 10, "demo_noise": 0.3}) == [row], "no demonstrations: any recipe"
+    assert (tmp_path / "expert_runs" / "reach-v3_s0_scripted_expert" / "eval_expert.json").is_file()
 
     res = mlp_baseline.run("metaworld/reach", seed=0, demos=2, steps=20, batch_size=8, episodes=2, ks=(2, 1))
     assert 150_000 < res["params"] < 200_000            # the ~190k-parameter reference of the issue
@@ -68,6 +79,13 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
         (2, res["success_k2"], "metaworld", 0.05), (1, res["success_k1"], "metaworld", 0.05)}
     want = {"demos": 2, "train_steps": 1500, "episodes": 2, "state_layout": "metaworld", "augment_shift": 0.05}
     assert len(metaworld_bc.matching(rows, want)) == 2, "the MLP's own budget matches any decoder budget"
+    (run := tmp_path / "runs" / "reach-v3_s1_mlp_baseline").mkdir()    # written before demo noise existed
+    old = json.loads((tmp_path / "runs" / "reach-v3_s0_mlp_baseline" / "eval_ode_k1.json").read_text())
+    del old["recipe"]["demo_noise"]
+    (run / "eval_ode_k1.json").write_text(json.dumps({**old, "seed": 1}))
+    (seed1,) = [r for r in metaworld_bc.collect(tmp_path / "runs") if r["seed"] == 1]
+    assert seed1["demo_noise"] == 0.0, "a run recorded before demo noise existed had clean demonstrations"
+    shutil.rmtree(run)
 
     # A multi-task policy's evaluation contributes one row per task.
     mt = tmp_path / "runs" / "MT10_s0_flow_matching"
@@ -84,21 +102,25 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
 def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_path):
     from benchmarks import metaworld_bc
 
-    def row(task, seed, success, train_steps=1500):
+    def row(task, seed, success, train_steps=1500, demo_noise=0.0):
         return {"task": task, "seed": seed, "decoder": "mean_flow", "sampler": "ode", "steps": 1, "episodes": 50,
-                "demos": 10, "train_steps": train_steps, "state_layout": "metaworld", "augment_shift": 0.05,
-                "success": success}
+                "demos": 10, "demo_noise": demo_noise, "train_steps": train_steps, "state_layout": "metaworld",
+                "augment_shift": 0.05, "success": success}
 
     results = tmp_path / "bc.json"
-    metaworld_bc.merge(results, [row("push-v3", 0, 0.5), row("push-v3", 1, 0.7), row("push-v3", 0, 0.1, 5000)])
+    metaworld_bc.merge(results, [row("push-v3", 0, 0.5), row("push-v3", 1, 0.7), row("push-v3", 0, 0.1, 5000),
+                                 row("push-v3", 0, 0.2, demo_noise=0.3)])
     merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3)])   # a later session
-    assert len(merged) == 4 and len(results.read_text().splitlines()) == 6     # one row per line
-    want = {"demos": 10, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld", "augment_shift": 0.05}
+    assert len(merged) == 5 and len(results.read_text().splitlines()) == 7     # one row per line
+    want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld",
+            "augment_shift": 0.05}
     table = metaworld_bc.tabulate(metaworld_bc.matching(merged, want))
     assert table == {"push-v3": {("mean_flow", "ode", 1): [0.9, 0.7]}, "hammer-v3": {("mean_flow", "ode", 1): [0.3]}}
+    noisy = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "demo_noise": 0.3}))
+    assert noisy == {"push-v3": {("mean_flow", "ode", 1): [0.2]}}
 
     # A run whose rows a results file already holds is not trained again.
-    args = type("Args", (), {"runs": str(tmp_path / "runs"), "done": {
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {
         ("metaworld/push-v3", 0): {("mean_flow", "ode", 1), ("mean_flow", "ode", 2)}}})
     metaworld_bc.run_one("metaworld/push-v3", 0, "mean_flow", args)      # would need demos and minutes
     assert not (tmp_path / "runs").exists()
@@ -111,14 +133,15 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_p
         (run / f"eval_ode_k{k}.json").write_text(json.dumps(
             {"decoder_type": "mean_flow", "sampler": "ode", "steps": k, "seed": 0, "episodes_per_task": 50,
              "per_task": {"hammer-v3": success},
-             "recipe": {"demos": 10, "train_steps": 1500, "state_layout": "metaworld", "augment_shift": 0.05}}))
-    args = type("Args", (), {"runs": str(tmp_path / "runs"), "done": {}, "results": results})
+             "recipe": {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "state_layout": "metaworld",
+                        "augment_shift": 0.05}}))
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "results": results})
     metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
     kept = [r for r in json.loads(results.read_text()) if r["task"] == "hammer-v3" and r["train_steps"] == 1500]
     assert sorted((r["steps"], r["success"]) for r in kept) == [(1, 0.25), (2, 0.75)], "the fresh row replaces 0.3"
 
     # The table is rebuilt; what was written below it by hand stays.
-    args = type("Args", (), {"demos": 10, "steps": 1500, "episodes": 50})
+    args = type("Args", (), {"demos": 10, "demo_noise": 0.0, "steps": 1500, "episodes": 50})
     md = tmp_path / "bc.md"
     metaworld_bc.write_table(table, md, args, results)
     md.write_text(md.read_text() + "What the table says.\n")

@@ -56,6 +56,8 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     (["eval", "--checkpoint", "/nonexistent/ckpt"], "config.json"),
     (["train", "--steps", "0"], "--steps"),
     (["train", "--dataset", "/nonexistent/ds", "--augment-shift", "0.1"], "--augment-shift"),
+    (["train", "--demo-noise", "1.5"], "--demo-noise"),
+    (["train", "--dataset", "/nonexistent/ds", "--demo-noise", "0.2"], "--demo-noise"),
     (["eval", "--checkpoint", "CKPT", "--sampler", "sde"], "sampler"),
 ])
 def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):

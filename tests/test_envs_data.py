@@ -100,6 +100,24 @@ def test_demos_layout_and_dataset(reach_demos):
     assert state_std.min() == pytest.approx(1e-2)  # constant dims (e.g. unused object slots) floored
 
 
+def test_noisy_demos_record_the_clean_expert_action(reach_demos):
+    """DART: the env executes perturbed actions, so the states leave the clean rollout's path,
+    while every recorded action is the expert's own action at the recorded state."""
+    noisy_root = generate_demos("metaworld/reach", 2, seed=0, cache_dir=reach_demos.parents[1], action_noise=0.2)
+    assert noisy_root.name == "reach-v3-n2-s0-noise0.2" and noisy_root.parent == reach_demos.parent
+    assert json.loads((noisy_root / "meta" / "info.json").read_text())["source"]["action_noise"] == 0.2
+    noisy, clean = load_dataset(noisy_root), load_dataset(reach_demos)
+    expert = expert_policy("reach")
+    np.testing.assert_allclose(expert(noisy.states), noisy.actions, atol=1e-6)
+    np.testing.assert_allclose(expert(clean.states), clean.actions, atol=1e-6)
+    n = 5
+    np.testing.assert_array_equal(noisy.states[0], clean.states[0])      # the same layout ...
+    assert np.abs(noisy.states[1:n, :3] - clean.states[1:n, :3]).max() > 1e-4   # ... a perturbed hand path
+    for bad in (-0.1, 2.0, float("nan")):
+        with pytest.raises(ValueError, match="action_noise"):
+            generate_demos("metaworld/reach", 2, seed=0, action_noise=bad)
+
+
 def test_chunk_padding_at_episode_end(reach_demos):
     ds = load_dataset(reach_demos)
     chunks = ChunkDataset(ds, horizon=8)

@@ -42,6 +42,9 @@ class TrainConfig:
     """Optimizer steps."""
     demos: int = 10
     """Expert demonstrations per task."""
+    demo_noise: float = 0.0
+    """Std of the Gaussian added to the expert's executed actions while recording demonstrations
+    (DART; the recorded actions stay clean). 0: plain expert rollouts."""
     output_dir: str = "outputs/train"
     seed: int = 0
     """Seeds the demonstration layouts, the network and the data order."""
@@ -112,7 +115,7 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
     else:
         if not quiet:
             print(f"demonstrations: {cfg.demos} per task of {cfg.task} (cached after the first run)", flush=True)
-        episodes = load_demos(cfg.task, cfg.demos, cfg.seed)
+        episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg))
     return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks)
 
 
@@ -125,6 +128,17 @@ def task_context(task_index: torch.Tensor, num_tasks: int) -> dict:
 
 
 DEFAULT_SHIFT = 0.05
+
+
+def demo_noise(cfg: TrainConfig) -> float:
+    """The recording noise of generated demonstrations (a `--dataset` is taken as it is)."""
+    if not 0 <= cfg.demo_noise <= 1:
+        raise ValueError(f"--demo-noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
+                         f"got {cfg.demo_noise}")
+    if cfg.demo_noise and cfg.dataset is not None:
+        raise ValueError(f"--demo-noise: recording noise applies to generated demonstrations, not to "
+                         f"--dataset {cfg.dataset}; drop one of them")
+    return cfg.demo_noise
 
 
 def state_layout(cfg: TrainConfig) -> str:
@@ -269,6 +283,7 @@ def _check(cfg: TrainConfig) -> None:
         raise ValueError(f"--ema-decay: expected a decay in [0, 1), got {cfg.ema_decay}")
     if cfg.lr <= 0:
         raise ValueError(f"--lr: expected a positive learning rate, got {cfg.lr}")
+    demo_noise(cfg)
 
 
 def train(cfg: TrainConfig) -> Path:

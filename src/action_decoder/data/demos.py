@@ -5,6 +5,12 @@ frames after the first success (or Meta-World's 500-step cap): the chunks that s
 near success then hold real actions rather than padding, and the demonstrations stay
 short. Attempt ``k`` uses layout seed ``seed + k`` (see ``envs.demo_seeds``), always
 disjoint from evaluation layouts.
+
+``action_noise`` records demonstrations the DART way (Laskey et al. 2017): the env executes
+the expert's action plus Gaussian noise while the dataset keeps the expert's clean action. The
+episodes then visit the states a slightly wrong policy reaches, labelled with the expert's
+correction, which is what a cloned policy needs to recover from its own errors (measured in
+docs/benchmarks/metaworld_bc.md).
 """
 
 from __future__ import annotations
@@ -37,15 +43,19 @@ def _is_complete(path: Path, num_episodes: int) -> bool:
     return info.exists() and json.loads(info.read_text()).get("total_episodes") == num_episodes
 
 
-def _rollout(env, expert, seed: int) -> dict | None:
-    """One expert episode from layout ``seed``; None if it never succeeds."""
+def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
+    """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
+    the executed action is perturbed (noise drawn from ``seed``), the recorded one is not."""
     obs = env.reset(seed=seed)[0]
+    noise = np.random.default_rng(seed)
     states, actions, rewards, successes, first_success = [], [], [], [], None
     while len(actions) < MAX_EPISODE_STEPS:
-        action = expert(obs)
+        action = expert(obs)                                                   # [D], in [-1, 1]
         states.append(obs.astype(np.float32))
         actions.append(action)
-        obs, reward, _, _, info = env.step(action)
+        if action_noise > 0:
+            action = np.clip(action + action_noise * noise.standard_normal(action.shape), -1.0, 1.0)
+        obs, reward, _, _, info = env.step(action.astype(np.float32))
         rewards.append(reward)
         successes.append(bool(info["success"]))
         if successes[-1] and first_success is None:
@@ -64,10 +74,12 @@ def generate_demos(
     seed: int = 0,
     max_attempts_factor: float = 3.0,
     cache_dir: str | Path | None = None,
+    action_noise: float = 0.0,
 ) -> Path:
-    """Directory holding ``num_episodes`` successful expert episodes of ``task``.
+    """Directory holding ``num_episodes`` successful expert episodes of ``task``, recorded with
+    ``action_noise`` (std of the Gaussian added to each executed action; 0: clean rollouts).
 
-    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>`` when complete; otherwise writes it
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-noise<σ>]`` when complete; otherwise writes it
     into a temporary sibling and renames it into place (concurrent runs never see a
     partial dataset). Raises RuntimeError if ``ceil(N * max_attempts_factor)`` attempts
     do not yield N successes.
@@ -77,14 +89,18 @@ def generate_demos(
         raise ValueError(f"num_episodes: expected an integer >= 1, got {num_episodes!r}")
     if not max_attempts_factor >= 1:
         raise ValueError(f"max_attempts_factor: expected a number >= 1, got {max_attempts_factor!r}")
-    final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}"
+    if not (isinstance(action_noise, (int, float)) and 0 <= action_noise <= 1):
+        raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
+                         f"got {action_noise!r}")
+    suffix = f"-noise{action_noise:g}" if action_noise > 0 else ""
+    final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
     if _is_complete(final, num_episodes):
         return final
 
     seeds = demo_seeds(seed, math.ceil(num_episodes * max_attempts_factor))
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     for attempt, layout_seed in enumerate(seeds, start=1):
-        episode = _rollout(env, expert, layout_seed)
+        episode = _rollout(env, expert, layout_seed, action_noise)
         if episode is not None:
             episodes.append(episode)
         if len(episodes) == num_episodes:
@@ -94,13 +110,14 @@ def generate_demos(
         raise RuntimeError(
             f"{name}: the scripted expert succeeded in {len(episodes)} of {len(seeds)} attempts, fewer than "
             f"the {num_episodes} demonstrations asked for; raise max_attempts_factor"
+            + (f" or lower the action noise ({action_noise})" if action_noise > 0 else "")
         )
 
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "attempts": attempt, "expert_success_rate": num_episodes / attempt,
-              "post_success_steps": POST_SUCCESS_STEPS}
+              "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise}
     write_episodes(tmp, episodes, [name], round(1.0 / env.unwrapped.dt, 6), {"robot_type": "sawyer", "source": source})
     if final.exists() and not _is_complete(final, num_episodes):
         shutil.rmtree(final)  # a stale partial cache entry
@@ -111,7 +128,8 @@ def generate_demos(
     return final
 
 
-def load_demos(spec: str, num_episodes: int, seed: int = 0) -> EpisodeDataset:
+def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0) -> EpisodeDataset:
     """Expert demonstrations of every task in ``spec`` (generated or cached), concatenated;
     ``task_index`` follows the order of ``resolve_tasks(spec)``."""
-    return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed)) for t in resolve_tasks(spec)])
+    return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed, action_noise=action_noise))
+                            for t in resolve_tasks(spec)])
