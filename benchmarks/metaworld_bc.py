@@ -55,7 +55,7 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     its rows into --results at once (a session cut off mid-grid keeps every finished run)."""
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
         return                          # measured in an earlier session: kept in --results
-    noise = f"_noise{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
+    noise = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{noise}_{decoder}"  # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"

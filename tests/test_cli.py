@@ -51,6 +51,15 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     assert (out / "final" / "eval.png").is_file()
 
 
+def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):
+    out = tmp_path / "run"
+    res = run(["train", *TINY, "--decoder", "mean_flow", "--steps", "3", "--demo-noise", "0.2",
+               "--output-dir", str(out), "--eval-episodes", "0"], env)
+    assert res.returncode == 0, res.stderr
+    assert [p.name for p in (tmp_path / "cache" / "metaworld").iterdir()] == ["reach-v3-n2-s0-dart0.2"]
+    assert ActionDecoderPolicy.from_pretrained(out / "final").config.extra["train"]["demo_noise"] == 0.2
+
+
 @pytest.mark.parametrize("args, message", [
     (["train", "--task", "metaworld/fly-to-moon"], "fly-to-moon"),
     (["eval", "--checkpoint", "/nonexistent/ckpt"], "config.json"),

@@ -10,6 +10,7 @@ import torch
 pytest.importorskip("metaworld")
 
 from action_decoder.data import (  # noqa: E402
+    CONTINUATION,
     ChunkDataset,
     EpisodeDataset,
     compute_stats,
@@ -27,7 +28,10 @@ from action_decoder.envs import (  # noqa: E402
     expert_policy,
     make_env,
     resolve_tasks,
+    restore_state,
+    save_state,
 )
+from action_decoder.data.demos import LOOKAHEAD  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -104,8 +108,9 @@ def test_noisy_demos_record_the_clean_expert_action(reach_demos):
     """DART: the env executes perturbed actions, so the states leave the clean rollout's path,
     while every recorded action is the expert's own action at the recorded state."""
     noisy_root = generate_demos("metaworld/reach", 2, seed=0, cache_dir=reach_demos.parents[1], action_noise=0.2)
-    assert noisy_root.name == "reach-v3-n2-s0-noise0.2" and noisy_root.parent == reach_demos.parent
-    assert json.loads((noisy_root / "meta" / "info.json").read_text())["source"]["action_noise"] == 0.2
+    assert noisy_root.name == "reach-v3-n2-s0-dart0.2" and noisy_root.parent == reach_demos.parent
+    info = json.loads((noisy_root / "meta" / "info.json").read_text())
+    assert info["source"]["action_noise"] == 0.2 and info["features"][CONTINUATION]["shape"] == [LOOKAHEAD, 4]
     noisy, clean = load_dataset(noisy_root), load_dataset(reach_demos)
     expert = expert_policy("reach")
     np.testing.assert_allclose(expert(noisy.states), noisy.actions, atol=1e-6)
@@ -113,9 +118,48 @@ def test_noisy_demos_record_the_clean_expert_action(reach_demos):
     n = 5
     np.testing.assert_array_equal(noisy.states[0], clean.states[0])      # the same layout ...
     assert np.abs(noisy.states[1:n, :3] - clean.states[1:n, :3]).max() > 1e-4   # ... a perturbed hand path
+    assert clean.continuations is None
     for bad in (-0.1, 2.0, float("nan")):
         with pytest.raises(ValueError, match="action_noise"):
             generate_demos("metaworld/reach", 2, seed=0, action_noise=bad)
+
+
+def test_noisy_demos_store_the_clean_continuation_as_chunk_targets(reach_demos):
+    """Frame 0 of a noisy episode has seen no noise yet, so its continuation is the clean
+    episode of the same layout; later frames' continuations are not the (noisy) frames that
+    follow them; chunks are cut from the continuations."""
+    noisy = load_dataset(generate_demos("metaworld/reach", 2, seed=0, cache_dir=reach_demos.parents[1],
+                                        action_noise=0.2))
+    clean = load_dataset(reach_demos)
+    assert noisy.continuations.shape == (noisy.num_frames, LOOKAHEAD, 4)
+    np.testing.assert_array_equal(noisy.continuations[:, 0], noisy.actions)
+    k = min(LOOKAHEAD, int(clean.episode_lengths[0]))
+    np.testing.assert_allclose(noisy.continuations[0, :k], clean.actions[:k], atol=1e-5)
+    following = noisy.actions[1:16]
+    assert np.abs(noisy.continuations[:15, 1] - following).max() > 1e-3
+    chunks = ChunkDataset(noisy, horizon=8)
+    item = chunks[5]
+    assert torch.equal(item["actions"], torch.from_numpy(noisy.continuations[5, :8])) and not item["action_is_pad"].any()
+    assert ChunkDataset(noisy.select([1]), 8)[0]["actions"].shape == (8, 4)
+    with pytest.raises(ValueError, match="horizon"):
+        ChunkDataset(noisy, horizon=LOOKAHEAD + 1)
+    with pytest.raises(ValueError, match="continuation"):
+        concat_datasets([noisy, clean])
+
+
+def test_saved_state_rewinds_the_env_exactly():
+    env, expert = make_env("pick-place", seed=0), expert_policy("pick-place")
+    obs = env.reset(seed=4)[0]
+    for _ in range(20):
+        obs = env.step(expert(obs))[0]
+    saved = save_state(env)
+    ahead = [env.step(expert(obs))[0]]
+    for _ in range(10):                                   # a detour the rewind must undo
+        ahead.append(env.step(np.ones(4, np.float32))[0])
+    restore_state(env, saved)
+    again = env.step(expert(obs))[0]
+    np.testing.assert_allclose(again, ahead[0], atol=1e-9)
+    assert env.unwrapped.curr_path_length == 21
 
 
 def test_chunk_padding_at_episode_end(reach_demos):

@@ -2,7 +2,8 @@
 
 Near an episode's end the chunk is completed by repeating the last action and marked in
 ``action_is_pad`` (LeRobot's convention), so every frame is a training sample and the
-loss can ignore, or keep, the padded part.
+loss can ignore, or keep, the padded part. A dataset that stores each frame's own
+continuation (demonstrations recorded with noise) gives its first H actions instead.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .episodes import EpisodeDataset
+from .episodes import CONTINUATION, EpisodeDataset
 
 
 class ChunkDataset(Dataset):
@@ -31,6 +32,12 @@ class ChunkDataset(Dataset):
         self.dataset, self.horizon = dataset, int(horizon)
         self.states = torch.from_numpy(dataset.states)
         self.actions = torch.from_numpy(dataset.actions)
+        self.continuations = None
+        if dataset.continuations is not None:
+            if horizon > dataset.continuations.shape[1]:
+                raise ValueError(f"horizon: expected at most the {dataset.continuations.shape[1]} actions the "
+                                 f"dataset's {CONTINUATION} holds per frame, got {horizon}")
+            self.continuations = torch.from_numpy(dataset.continuations[:, :horizon])   # [N, H, D]
         self.task_index = dataset.task_index.tolist()
         ends = dataset.episode_starts + dataset.episode_lengths - 1
         self.last_frame = torch.from_numpy(np.repeat(ends, dataset.episode_lengths))
@@ -51,6 +58,9 @@ class ChunkDataset(Dataset):
         if not -len(self) <= i < len(self):
             raise IndexError(f"index {i} out of range for {len(self)} frames")
         i = i % len(self)
+        if self.continuations is not None:
+            return {"state": self.states[i], "actions": self.continuations[i],
+                    "action_is_pad": torch.zeros(self.horizon, dtype=torch.bool), "task_index": self.task_index[i]}
         wanted = i + self.offsets
         last = self.last_frame[i]
         return {

@@ -9,8 +9,12 @@ disjoint from evaluation layouts.
 ``action_noise`` records demonstrations the DART way (Laskey et al. 2017): the env executes
 the expert's action plus Gaussian noise while the dataset keeps the expert's clean action. The
 episodes then visit the states a slightly wrong policy reaches, labelled with the expert's
-correction, which is what a cloned policy needs to recover from its own errors (measured in
-docs/benchmarks/metaworld_bc.md).
+correction, which is what a cloned policy needs to recover from its own errors. A chunking
+policy needs more than the next action: the recorded next actions react to noise that comes
+after the chunk's first state, which no policy can predict. So each noisy frame also stores
+the clean expert's own next ``LOOKAHEAD`` actions from that state (``action.continuation``,
+simulated from a saved MuJoCo state and rewound), and chunks are cut from those
+(docs/benchmarks/metaworld_bc.md).
 """
 
 from __future__ import annotations
@@ -25,11 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..envs.metaworld_tasks import MAX_EPISODE_STEPS, canonical_task, demo_seeds, expert_policy, make_env, resolve_tasks
-from .episodes import ACTION, STATE, EpisodeDataset, concat_datasets
+from ..envs.metaworld_tasks import (MAX_EPISODE_STEPS, canonical_task, demo_seeds, expert_policy, make_env,
+                                    resolve_tasks, restore_state, save_state)
+from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset, write_episodes
 
 POST_SUCCESS_STEPS = 10
+LOOKAHEAD = 32
+"""Clean expert actions stored per noisy frame: enough for chunks of up to 32 actions."""
 CACHE_ENV_VAR = "ACTION_DECODER_CACHE"
 
 
@@ -43,17 +50,29 @@ def _is_complete(path: Path, num_episodes: int) -> bool:
     return info.exists() and json.loads(info.read_text()).get("total_episodes") == num_episodes
 
 
+def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
+    """``[LOOKAHEAD, D]``: ``action`` and the clean expert's next actions from the env's current
+    state; the env is left as it was. Past Meta-World's step cap the last action is held."""
+    saved, actions = save_state(env), [action]
+    while len(actions) < LOOKAHEAD and env.unwrapped.curr_path_length < MAX_EPISODE_STEPS:
+        actions.append(expert(env.step(actions[-1])[0]))
+    restore_state(env, saved)
+    return np.stack(actions + [actions[-1]] * (LOOKAHEAD - len(actions)))
+
+
 def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
-    the executed action is perturbed (noise drawn from ``seed``), the recorded one is not."""
+    the executed action is perturbed (noise drawn from ``seed``), the recorded one is not, and
+    each frame keeps the clean continuation."""
     obs = env.reset(seed=seed)[0]
     noise = np.random.default_rng(seed)
-    states, actions, rewards, successes, first_success = [], [], [], [], None
+    states, actions, continuations, rewards, successes, first_success = [], [], [], [], [], None
     while len(actions) < MAX_EPISODE_STEPS:
         action = expert(obs)                                                   # [D], in [-1, 1]
         states.append(obs.astype(np.float32))
         actions.append(action)
         if action_noise > 0:
+            continuations.append(_continuation(env, expert, action))          # [LOOKAHEAD, D]
             action = np.clip(action + action_noise * noise.standard_normal(action.shape), -1.0, 1.0)
         obs, reward, _, _, info = env.step(action.astype(np.float32))
         rewards.append(reward)
@@ -64,8 +83,9 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
             break
     if first_success is None:
         return None
-    return {STATE: np.stack(states), ACTION: np.stack(actions), "task_index": 0,
-            "next.reward": np.asarray(rewards), "next.success": np.asarray(successes), "seed": seed}
+    episode = {STATE: np.stack(states), ACTION: np.stack(actions), "task_index": 0,
+               "next.reward": np.asarray(rewards), "next.success": np.asarray(successes), "seed": seed}
+    return {**episode, CONTINUATION: np.stack(continuations)} if continuations else episode
 
 
 def generate_demos(
@@ -79,7 +99,7 @@ def generate_demos(
     """Directory holding ``num_episodes`` successful expert episodes of ``task``, recorded with
     ``action_noise`` (std of the Gaussian added to each executed action; 0: clean rollouts).
 
-    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-noise<σ>]`` when complete; otherwise writes it
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>]`` when complete; otherwise writes it
     into a temporary sibling and renames it into place (concurrent runs never see a
     partial dataset). Raises RuntimeError if ``ceil(N * max_attempts_factor)`` attempts
     do not yield N successes.
@@ -92,7 +112,7 @@ def generate_demos(
     if not (isinstance(action_noise, (int, float)) and 0 <= action_noise <= 1):
         raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
                          f"got {action_noise!r}")
-    suffix = f"-noise{action_noise:g}" if action_noise > 0 else ""
+    suffix = f"-dart{action_noise:g}" if action_noise > 0 else ""
     final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
     if _is_complete(final, num_episodes):
         return final

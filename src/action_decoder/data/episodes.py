@@ -15,12 +15,16 @@ import numpy as np
 from .stats import compute_stats
 
 STATE, ACTION = "observation.state", "action"
+CONTINUATION = "action.continuation"
+"""Optional per-frame ``[K, D]``: the demonstrator's own next K actions from this frame's state
+(recorded with noise, the frames that follow do not show them; see ``demos.py``)."""
 
 
 @dataclass
 class EpisodeDataset:
     """Frames ``states [N, S]``, ``actions [N, D]``, ``task_index [N]`` stored episode after
-    episode; episode ``e`` spans ``episode_starts[e] : episode_starts[e] + episode_lengths[e]``."""
+    episode; episode ``e`` spans ``episode_starts[e] : episode_starts[e] + episode_lengths[e]``.
+    ``continuations [N, K, D]``, when present, are the chunk targets (``CONTINUATION``)."""
 
     states: np.ndarray
     actions: np.ndarray
@@ -31,10 +35,16 @@ class EpisodeDataset:
     episode_ids: np.ndarray | None = None
     root: Path | None = None
     stats: dict = field(default_factory=dict)
+    continuations: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.states = np.ascontiguousarray(self.states, dtype=np.float32)
         self.actions = np.ascontiguousarray(self.actions, dtype=np.float32)
+        if self.continuations is not None:
+            self.continuations = np.ascontiguousarray(self.continuations, dtype=np.float32)
+            if self.continuations.ndim != 3 or self.continuations.shape[0::2] != self.actions.shape:
+                raise ValueError(f"EpisodeDataset.continuations: expected [frames, K, action dim] = "
+                                 f"[{len(self.actions)}, K, {self.actions.shape[1]}], got {self.continuations.shape}")
         self.task_index = np.asarray(self.task_index, dtype=np.int64)
         self.episode_lengths = np.asarray(self.episode_lengths, dtype=np.int64)
         n = int(self.episode_lengths.sum())
@@ -81,6 +91,7 @@ class EpisodeDataset:
         return EpisodeDataset(
             self.states[frames], self.actions[frames], self.task_index[frames], self.episode_lengths[picks],
             list(self.tasks), self.fps, self.episode_ids[picks], self.root,
+            continuations=None if self.continuations is None else self.continuations[frames],
         )
 
 
@@ -92,6 +103,10 @@ def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
     fps = {d.fps for d in datasets}
     if len(widths) > 1 or len(fps) > 1:
         raise ValueError(f"concat_datasets: expected equal (state dim, action dim) and fps, got {sorted(widths)} and {list(fps)}")
+    kinds = {None if d.continuations is None else d.continuations.shape[1] for d in datasets}
+    if len(kinds) > 1:
+        raise ValueError(f"concat_datasets: expected every dataset with {CONTINUATION} of one length, or none, "
+                         f"got lengths {sorted(map(str, kinds))}")
     tasks = list(dict.fromkeys(t for d in datasets for t in d.tasks))
     remapped = [np.asarray([tasks.index(t) for t in d.tasks], dtype=np.int64)[d.task_index] for d in datasets]
     return EpisodeDataset(
@@ -101,4 +116,5 @@ def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
         np.concatenate([d.episode_lengths for d in datasets]),
         tasks,
         fps.pop(),
+        continuations=None if kinds == {None} else np.concatenate([d.continuations for d in datasets]),
     )

@@ -21,7 +21,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from .episodes import ACTION, STATE, EpisodeDataset
+from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset
 from .stats import compute_stats, load_stats, save_stats
 
 REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
@@ -44,7 +44,8 @@ def write_episodes(
     info_extra: dict | None = None,
 ) -> Path:
     """Write episodes (dicts with ``observation.state [L, S]``, ``action [L, D]``,
-    ``task_index`` (int), ``next.reward [L]``, ``next.success [L]``, optional ``seed``) under ``root``."""
+    ``task_index`` (int), ``next.reward [L]``, ``next.success [L]``, optional ``seed`` and
+    ``action.continuation [L, K, D]``) under ``root``."""
     root = Path(root)
     (root / "meta").mkdir(parents=True, exist_ok=True)
     index = 0
@@ -58,6 +59,8 @@ def write_episodes(
             "next.reward": np.asarray(ep["next.reward"], np.float32),
             "next.success": np.asarray(ep["next.success"], bool), "next.done": np.arange(length) == length - 1,
         }
+        if CONTINUATION in ep:
+            columns[CONTINUATION] = _fixed_lists(ep[CONTINUATION].reshape(length, -1))
         path = root / DATA_PATH.format(episode_chunk=e // CHUNK_SIZE, episode_index=e)
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.table(columns), path)
@@ -69,6 +72,8 @@ def write_episodes(
         ACTION: {"dtype": "float32", "shape": [action_dim], "names": None},
         **{k: {"dtype": v, "shape": [1], "names": None} for k, v in SCALARS.items()},
     }
+    if CONTINUATION in episodes[0]:
+        features[CONTINUATION] = {"dtype": "float32", "shape": list(episodes[0][CONTINUATION].shape[1:]), "names": None}
     info = {
         "codebase_version": "v2.0", "fps": fps, "total_episodes": len(episodes), "total_frames": index,
         "total_tasks": len(tasks), "total_chunks": (len(episodes) - 1) // CHUNK_SIZE + 1, "chunks_size": CHUNK_SIZE,
@@ -130,21 +135,32 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
             raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {table.column_names}")
         states, actions = _matrix(table, STATE, path), _matrix(table, ACTION, path)
         task = table["task_index"].to_numpy() if "task_index" in table.column_names else np.zeros(len(table), np.int64)
-        tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task))
-    widths = sorted({(s.shape[1], a.shape[1]) for s, a, *_ in tables})
+        more = _matrix(table, CONTINUATION, path) if CONTINUATION in table.column_names else None
+        tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task,
+                       more))
+    widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1]) for s, a, *_, c in tables})
     if len(widths) > 1:
-        raise ValueError(f"{root}: expected the same (state, action) widths in every file, got {widths}")
-    states, actions, episode, frame, task = (np.concatenate(parts) for parts in zip(*tables))
+        raise ValueError(f"{root}: expected the same (state, action, {CONTINUATION}) widths in every file, "
+                         f"got {widths}")
+    states, actions, episode, frame, task = (np.concatenate(parts) for parts in list(zip(*tables))[:5])
+    continuations = None if tables[0][5] is None else np.concatenate([t[5] for t in tables])
 
     order = np.lexsort((frame, episode))
     states, actions, episode, frame, task = states[order], actions[order], episode[order], frame[order], task[order]
+    if continuations is not None:
+        if continuations.shape[1] % actions.shape[1]:
+            raise ValueError(f"{root}: column {CONTINUATION!r} expected K × {actions.shape[1]} values per frame "
+                             f"(K actions), got {continuations.shape[1]}")
+        continuations = continuations[order].reshape(len(actions), -1, actions.shape[1])  # [N, K, D]
     ids, starts, lengths = np.unique(episode, return_index=True, return_counts=True)
     for i, start, length in zip(ids, starts, lengths):
         if not np.array_equal(frame[start:start + length], np.arange(length)):
             raise ValueError(
                 f"{root}: episode {i} expected frame_index 0..{length - 1} each once, got {frame[start:start + length][:10].tolist()}..."
             )
-    for name, values in ((STATE, states), (ACTION, actions)):
+    checked = ((STATE, states), (ACTION, actions)) + (() if continuations is None else
+                                                      ((CONTINUATION, continuations.reshape(len(actions), -1)),))
+    for name, values in checked:
         bad = ~np.isfinite(values).all(axis=1)
         if bad.any():
             row = int(np.argmax(bad))
@@ -155,4 +171,4 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
     tasks = _read_tasks(root, int(task.max()) + 1)
     stats_path = root / "meta" / "stats.json"
     stats = load_stats(stats_path, {STATE: states.shape[1], ACTION: actions.shape[1]}) if stats_path.exists() else {}
-    return EpisodeDataset(states, actions, task, lengths, tasks, fps, ids, root, stats)
+    return EpisodeDataset(states, actions, task, lengths, tasks, fps, ids, root, stats, continuations)

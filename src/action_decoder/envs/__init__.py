@@ -13,6 +13,8 @@ from .metaworld_tasks import (
     expert_policy,
     make_env,
     resolve_tasks,
+    restore_state,
+    save_state,
 )
 
 __all__ = [
@@ -28,4 +30,6 @@ __all__ = [
     "expert_policy",
     "make_env",
     "resolve_tasks",
+    "restore_state",
+    "save_state",
 ]

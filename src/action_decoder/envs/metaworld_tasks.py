@@ -140,6 +140,30 @@ def make_env(task: str, seed: int | None = None) -> SeededLayoutEnv:
     return SeededLayoutEnv(env)
 
 
+def save_state(env: SeededLayoutEnv) -> tuple:
+    """Everything a Meta-World env's next steps depend on: MuJoCo's integration state and the
+    env's own step state (the previous frame it stacks into obs, the step count)."""
+    import mujoco
+
+    u = env.unwrapped
+    physics = np.empty(mujoco.mj_stateSize(u.model, mujoco.mjtState.mjSTATE_INTEGRATION))
+    mujoco.mj_getState(u.model, u.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
+    last = None if u._last_stable_obs is None else u._last_stable_obs.copy()
+    return physics, u._prev_obs.copy(), u.curr_path_length, u._did_see_sim_exception, last
+
+
+def restore_state(env: SeededLayoutEnv, state: tuple) -> None:
+    """Put ``env`` back where ``save_state`` found it (lookahead rollouts during recording)."""
+    import mujoco
+
+    u = env.unwrapped
+    physics, prev_obs, steps, unstable, last = state
+    mujoco.mj_setState(u.model, u.data, physics, mujoco.mjtState.mjSTATE_INTEGRATION)
+    mujoco.mj_forward(u.model, u.data)
+    u._prev_obs, u.curr_path_length, u._did_see_sim_exception = prev_obs.copy(), steps, unstable
+    u._last_stable_obs = None if last is None else last.copy()
+
+
 def expert_policy(task: str) -> Callable[[np.ndarray], np.ndarray]:
     """Meta-World's scripted expert as ``obs [39] or [B, 39] -> action [4] or [B, 4]``.
 
