@@ -44,7 +44,8 @@ class TrainConfig:
     """Expert demonstrations per task."""
     demo_noise: float = 0.0
     """Std of the Gaussian added to the expert's executed actions while recording demonstrations
-    (DART; the recorded actions stay clean). 0: plain expert rollouts."""
+    (DART: the recorded actions stay clean, and chunk targets are the expert's own continuation
+    from each state). 0: plain expert rollouts."""
     output_dir: str = "outputs/train"
     seed: int = 0
     """Seeds the demonstration layouts, the network and the data order."""
