@@ -138,7 +138,8 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
         more = _matrix(table, CONTINUATION, path) if CONTINUATION in table.column_names else None
         tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task,
                        more))
-    widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1]) for s, a, *_, c in tables})
+    widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1]) for s, a, *_, c in tables},
+                    key=str)   # None (no continuation) does not compare with ints
     if len(widths) > 1:
         raise ValueError(f"{root}: expected the same (state, action, {CONTINUATION}) widths in every file, "
                          f"got {widths}")
