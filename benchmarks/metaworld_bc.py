@@ -78,11 +78,13 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
               "--demo-noise", str(args.demo_noise), "--steps",
               str(args.steps), "--seed", str(seed), "--output-dir", str(run), "--eval-episodes", "0",
               "--no-progress", *resume], log)
+    n = args.n_action_steps            # an evaluation setting: one trained policy serves every n
     for dec, sampler, k in METHODS:
-        out = run / f"eval_{sampler}_k{k}.json"
+        out = run / f"eval_{sampler}_k{k}_n{n}.json"
         if dec == decoder and not out.is_file():
             _run([*CLI, "eval", "--checkpoint", str(run / "final"), "--episodes", str(args.episodes),
-                  "--sampler", sampler, "--steps", str(k), "--seed", str(seed), "--output", str(out)], log)
+                  "--sampler", sampler, "--steps", str(k), "--n-action-steps", str(n), "--seed", str(seed),
+                  "--output", str(out)], log)
     _keep(run, args)
 
 
@@ -112,13 +114,17 @@ def recipe(run: Path) -> dict:
 
 def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
     """One row per (task, seed, method) from the eval JSON files present (a multi-task policy
-    contributes one row per task); `pattern` "eval_*.json" reads one run directory."""
+    contributes one row per task); `pattern` "eval_*.json" reads one run directory. Our decoders'
+    rows carry the actions executed per chunk; the references' rows do not (the MLP's is fixed at 8
+    by its definition, the expert re-plans every step), so they match any."""
     rows = []
     for path in sorted(runs.glob(pattern)):
         res = json.loads(path.read_text())
         how = res.get("recipe") or recipe(path.parent)
         if how:                         # the scripted expert has no recipe: its rows match any
             how = {"demo_noise": 0.0, **how}    # runs from before recording noise existed were clean
+        if "n_action_steps" in res:
+            how["n_action_steps"] = res["n_action_steps"]
         for task, success in res["per_task"].items():
             rows.append({"task": task, "seed": res.get("seed", 0), "decoder": res["decoder_type"],
                          "sampler": res["sampler"], "steps": res["steps"],
@@ -127,7 +133,7 @@ def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
 
 
 ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "demo_noise", "train_steps",
-           "state_layout", "augment_shift")
+           "state_layout", "augment_shift", "n_action_steps")
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
@@ -180,7 +186,8 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
             f"{args.demos} demonstrations per task"
             + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
-            + f", {args.steps} training steps, "
+            + f", {args.steps} training steps, the first {args.n_action_steps} actions of each chunk executed "
+            "before re-planning (the MLP reference: 8), "
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations; "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
             f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
@@ -204,6 +211,9 @@ def main(argv=None) -> None:
                    help="std of the noise on the expert's executed actions while recording (DART; the table "
                         "keeps one value)")
     p.add_argument("--steps", type=int, default=5000, help="training steps (the main job trains 1500)")
+    p.add_argument("--n-action-steps", type=int, default=TrainConfig.n_action_steps,
+                   help="actions executed from each chunk before re-planning (evaluation only: a trained run "
+                        "is re-evaluated, not retrained, for another value)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
     p.add_argument("--runs", default="runs/metaworld_bc")
@@ -222,7 +232,7 @@ def main(argv=None) -> None:
         p.error("--multitask: the mlp_baseline and scripted_expert columns are per task; drop them from --decoders")
     results = args.results = Path(args.results or Path(args.table).with_suffix(".json"))
     want = {"demos": args.demos, "demo_noise": args.demo_noise, "train_steps": args.steps, "episodes": args.episodes,
-            "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT}
+            "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT, "n_action_steps": args.n_action_steps}
     args.done = {}
     for r in [] if args.multitask else matching(merge(results, []), want):
         args.done.setdefault((f"metaworld/{r['task']}", r["seed"]), set()).add((r["decoder"], r["sampler"], r["steps"]))

@@ -58,6 +58,7 @@ def run_one(task: str, decoder: str, args) -> None:
         resume = ["--resume"] if (bc / "checkpoints" / "last").is_file() else []
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos), "--steps",
               str(args.bc_steps), "--hidden-size", "64", "--num-layers", "2", "--seed", "0", "--output-dir", str(bc),
+              "--n-action-steps", "8",    # the recipe the RL table was measured with: 8 actions per decision
               "--eval-episodes", "0", "--no-progress", *resume], log)
     _eval(bc / "final", run / "bc_eval.json", "ode", args, log)
     # The fine-tuned policy samples with K = --sde-steps; MeanFlow's BC default is K = 1, so the

@@ -77,8 +77,9 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     rows = metaworld_bc.collect(tmp_path / "runs")
     assert {(r["steps"], r["success"], r["state_layout"], r["augment_shift"]) for r in rows} == {
         (2, res["success_k2"], "metaworld", 0.05), (1, res["success_k1"], "metaworld", 0.05)}
-    want = {"demos": 2, "train_steps": 1500, "episodes": 2, "state_layout": "metaworld", "augment_shift": 0.05}
-    assert len(metaworld_bc.matching(rows, want)) == 2, "the MLP's own budget matches any decoder budget"
+    want = {"demos": 2, "train_steps": 1500, "episodes": 2, "state_layout": "metaworld", "augment_shift": 0.05,
+            "n_action_steps": 4}
+    assert len(metaworld_bc.matching(rows, want)) == 2, "the MLP's own budget and re-planning match any decoder's"
     (run := tmp_path / "runs" / "reach-v3_s1_mlp_baseline").mkdir()    # written before demo noise existed
     old = json.loads((tmp_path / "runs" / "reach-v3_s0_mlp_baseline" / "eval_ode_k1.json").read_text())
     del old["recipe"]["demo_noise"]
@@ -99,25 +100,27 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
 
 
-def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_path):
+def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monkeypatch, tmp_path):
     from benchmarks import metaworld_bc
 
-    def row(task, seed, success, train_steps=1500, demo_noise=0.0):
+    def row(task, seed, success, train_steps=1500, demo_noise=0.0, n_action_steps=8):
         return {"task": task, "seed": seed, "decoder": "mean_flow", "sampler": "ode", "steps": 1, "episodes": 50,
                 "demos": 10, "demo_noise": demo_noise, "train_steps": train_steps, "state_layout": "metaworld",
-                "augment_shift": 0.05, "success": success}
+                "augment_shift": 0.05, "n_action_steps": n_action_steps, "success": success}
 
     results = tmp_path / "bc.json"
     metaworld_bc.merge(results, [row("push-v3", 0, 0.5), row("push-v3", 1, 0.7), row("push-v3", 0, 0.1, 5000),
-                                 row("push-v3", 0, 0.2, demo_noise=0.3)])
+                                 row("push-v3", 0, 0.2, demo_noise=0.3), row("push-v3", 0, 0.6, n_action_steps=4)])
     merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3)])   # a later session
-    assert len(merged) == 5 and len(results.read_text().splitlines()) == 7     # one row per line
+    assert len(merged) == 6 and len(results.read_text().splitlines()) == 8     # one row per line
     want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld",
-            "augment_shift": 0.05}
+            "augment_shift": 0.05, "n_action_steps": 8}
     table = metaworld_bc.tabulate(metaworld_bc.matching(merged, want))
     assert table == {"push-v3": {("mean_flow", "ode", 1): [0.9, 0.7]}, "hammer-v3": {("mean_flow", "ode", 1): [0.3]}}
     noisy = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "demo_noise": 0.3}))
     assert noisy == {"push-v3": {("mean_flow", "ode", 1): [0.2]}}
+    replanned = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "n_action_steps": 4}))
+    assert replanned == {"push-v3": {("mean_flow", "ode", 1): [0.6]}}
 
     # A run whose rows a results file already holds is not trained again.
     args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {
@@ -130,18 +133,27 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(tmp_p
     (run / "final").mkdir(parents=True)
     (run / "final" / "model.safetensors").touch()
     for k, success in ((1, 0.25), (2, 0.75)):
-        (run / f"eval_ode_k{k}.json").write_text(json.dumps(
+        (run / f"eval_ode_k{k}_n8.json").write_text(json.dumps(
             {"decoder_type": "mean_flow", "sampler": "ode", "steps": k, "seed": 0, "episodes_per_task": 50,
-             "per_task": {"hammer-v3": success},
+             "n_action_steps": 8, "per_task": {"hammer-v3": success},
              "recipe": {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "state_layout": "metaworld",
                         "augment_shift": 0.05}}))
-    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "results": results})
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "results": results,
+                             "n_action_steps": 8, "episodes": 50})
     metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
     kept = [r for r in json.loads(results.read_text()) if r["task"] == "hammer-v3" and r["train_steps"] == 1500]
     assert sorted((r["steps"], r["success"]) for r in kept) == [(1, 0.25), (2, 0.75)], "the fresh row replaces 0.3"
 
+    # Another number of executed actions re-evaluates the trained policy under its own file name.
+    calls = []
+    monkeypatch.setattr(metaworld_bc, "_run", lambda cmd, log: calls.append(cmd))
+    args.n_action_steps = 4
+    metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
+    assert [c[c.index("--output") + 1].rsplit("/", 1)[-1] for c in calls] == ["eval_ode_k1_n4.json", "eval_ode_k2_n4.json"]
+    assert all(c[3] == "eval" and c[c.index("--n-action-steps") + 1] == "4" for c in calls), "no retraining"
+
     # The table is rebuilt; what was written below it by hand stays.
-    args = type("Args", (), {"demos": 10, "demo_noise": 0.0, "steps": 1500, "episodes": 50})
+    args = type("Args", (), {"demos": 10, "demo_noise": 0.0, "steps": 1500, "episodes": 50, "n_action_steps": 8})
     md = tmp_path / "bc.md"
     metaworld_bc.write_table(table, md, args, results)
     md.write_text(md.read_text() + "What the table says.\n")

@@ -72,7 +72,8 @@ class DecoderConfig:
     vlm_head_dim: Optional[int] = None
     vlm_num_key_value_heads: Optional[int] = None
     # --- policy ---
-    n_action_steps: int = 8
+    n_action_steps: int = 4     # of 16: re-planning every 4 actions instead of 8 took flow matching
+                                # from 72.4 to 80.4 % on nine hard Meta-World tasks (10 demos)
     normalization_mode: str = "mean_std"
     state_layout: str = "flat"   # "metaworld": relative positions appended (state_layout.py)
     default_ctrl_freq: float = 10.0

@@ -66,8 +66,8 @@ class TrainConfig:
     the metaworld layout, 0 with flat; needs the metaworld layout)."""
     horizon: int = 16
     """Action chunk length H."""
-    n_action_steps: int = 8
-    """Actions executed from each chunk before re-planning."""
+    n_action_steps: int = DecoderConfig.n_action_steps
+    """Actions executed from each chunk before re-planning (stored in the checkpoint)."""
     inference_steps: int = 0
     """Sampling steps K (0: the decoder's default: DDPM 10, flow matching 10, MeanFlow 1)."""
     hidden_size: int = 96
