@@ -32,6 +32,8 @@ from pathlib import Path
 
 from action_decoder.train import DEFAULT_SHIFT, TrainConfig
 
+from .mlp_baseline import N_ACTION_STEPS as MLP_N_ACTION_STEPS
+
 # (decoder, sampler, steps) columns of the table; the first per decoder is its default.
 METHODS = [("DDPM", "ode", 10), ("flow_matching", "ode", 10), ("flow_matching", "ode", 1),
            ("mean_flow", "ode", 1), ("mean_flow", "ode", 2), ("mlp_baseline", "ode", 10), ("mlp_baseline", "ode", 1),
@@ -115,8 +117,8 @@ def recipe(run: Path) -> dict:
 def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
     """One row per (task, seed, method) from the eval JSON files present (a multi-task policy
     contributes one row per task); `pattern` "eval_*.json" reads one run directory. Our decoders'
-    rows carry the actions executed per chunk; the references' rows do not (the MLP's is fixed at 8
-    by its definition, the expert re-plans every step), so they match any."""
+    rows carry the actions executed per chunk; the references' rows do not (the MLP's is fixed by
+    its definition, the expert re-plans every step), so they match any."""
     rows = []
     for path in sorted(runs.glob(pattern)):
         res = json.loads(path.read_text())
@@ -187,7 +189,7 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
             f"{args.demos} demonstrations per task"
             + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
             + f", {args.steps} training steps, the first {args.n_action_steps} actions of each chunk executed "
-            "before re-planning (the MLP reference: 8), "
+            f"before re-planning (the MLP reference: {MLP_N_ACTION_STEPS}), "
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations; "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
             f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"

@@ -29,6 +29,8 @@ from action_decoder.normalize import make_normalizers
 from action_decoder.state_layout import feature_dim, relative_positions, shift_positions
 from action_decoder.train import DEFAULT_SHIFT, TrainConfig
 
+N_ACTION_STEPS = 8   # the reference as NOTES.md defines it: chunk 16, execute 8
+
 
 class MLPVelocity(nn.Module):
     """v(x_t, t | state): the flattened chunk, the state and a sinusoidal time code through a
@@ -50,7 +52,7 @@ class MLPVelocity(nn.Module):
 
 
 def run(task: str, seed: int, demos: int = 10, steps: int = 5000, batch_size: int = 256, episodes: int = 50,
-        ks: tuple[int, ...] = (10, 1), horizon: int = 16, n_action_steps: int = 8, norm: str = "mean_std",
+        ks: tuple[int, ...] = (10, 1), horizon: int = 16, n_action_steps: int = N_ACTION_STEPS, norm: str = "mean_std",
         layout: str = "metaworld", shift: float = DEFAULT_SHIFT, demo_noise: float = 0.0) -> dict:
     """Train on `demos` demonstrations of `task` (demo subset = `seed`, recorded with `demo_noise`),
     evaluate at each K. `layout` and `shift` are the policy's state layout and the training's shift
@@ -122,7 +124,7 @@ def main(argv=None) -> None:
     p.add_argument("--steps", type=int, default=5000)
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--horizon", type=int, default=16)
-    p.add_argument("--n-action-steps", type=int, default=8)
+    p.add_argument("--n-action-steps", type=int, default=N_ACTION_STEPS)
     p.add_argument("--norm", default="mean_std", choices=["mean_std", "min_max"])
     p.add_argument("--state-layout", default="metaworld", choices=["metaworld", "flat"],
                    help="flat: the plain MLP of NOTES.md (normalised state only, no shift augmentation)")
