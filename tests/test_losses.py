@@ -91,9 +91,15 @@ def test_meanflow_times_are_logit_normal_and_ordered():
     assert n == 10000 and torch.all(t <= r)
     logits = torch.logit(torch.cat([t[:n], r[:n]]))
     assert abs(float(logits.mean()) - 0.4) < 0.03   # both draws together keep the logit-normal mean
+    same = torch.logit(t[n:])                       # r = t rows: one draw, not the smaller of two
+    assert torch.equal(t[n:], r[n:]) and abs(float(same.mean()) - 0.4) < 0.03 and abs(float(same.std()) - 1) < 0.03
     t, r, n = sample_meanflow_times(20000, 0.5, 0.4, 1.0, torch.Generator().manual_seed(0), dist="uniform")
     both = torch.cat([t[:n], r[:n]])
     assert torch.all(t <= r) and abs(float(both.mean()) - 0.5) < 0.01 and abs(float(both.var()) - 1 / 12) < 0.003
+    # The velocity rows cover t ~ U[0, 1] as flow matching does, the data end included (the min of
+    # two draws would put 4 % of them above 0.8, not 20 %).
+    same = t[n:]
+    assert abs(float(same.mean()) - 0.5) < 0.01 and abs(float((same > 0.8).float().mean()) - 0.2) < 0.015
     # The whole interval, which 1-step sampling uses, is drawn often under "uniform" only.
     corner = lambda t, r: float(((t[:n] < 0.1) & (r[:n] > 0.9)).float().mean())   # noqa: E731
     assert corner(t, r) > 0.015
