@@ -7,6 +7,7 @@ included — is computed inside the DDP wrapper's forward, so gradients are all-
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -391,4 +392,8 @@ def train(cfg: TrainConfig) -> Path:
         print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training)", flush=True)
     if world > 1:
         torch.distributed.barrier()
+        # Free DDP's reducer (it holds the last gloo work) now: left to a reference cycle, it would
+        # be destroyed during interpreter shutdown, where gloo can abort the process (SIGABRT).
+        del model
+        gc.collect()
     return final
