@@ -23,6 +23,7 @@ def test_go1_defaults():
     ({"beta_schedule": "cosine"}, "beta_schedule"),
     ({"flow_sde_mode": "wild"}, "flow_sde_mode"),
     ({"meanflow_time_dist": "beta"}, "meanflow_time_dist"),
+    ({"flow_prediction": "x0"}, "flow_prediction"),
     ({"flow_sde_sigma_init": 0.0}, "flow_sde_sigma_init"),
     ({"flow_sde_clip_t": 1.5}, "flow_sde_clip_t"),
     ({"meanflow_ratio_r_neq_t": 1.2}, "meanflow_ratio_r_neq_t"),

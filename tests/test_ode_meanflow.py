@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from action_decoder import (sample_meanflow, sample_ode, time_grid, velocity_from_meanflow)
+from action_decoder import (sample_meanflow, sample_ode, time_grid, velocity_from_meanflow,
+                            velocity_from_sample)
 from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
 
 N = 2000
@@ -89,6 +90,20 @@ def test_velocity_from_meanflow_recovers_velocity(gaussian, mode):
         # Without the (t − r)·du/dt correction u(x, t, t + δ) is off at first order in δ.
         u = gaussian.avg_velocity(z, t, t + 1e-3)
         assert (v_hat - gaussian.velocity(z, t)).abs().max() < 0.01 * (u - gaussian.velocity(z, t)).abs().max()
+
+
+def test_velocity_from_sample_is_the_mixture_velocity(mixture):
+    # On z_t = (1 − t)·e + t·a, z_t / s with s = √(t² + (1 − t)²) is DDPM's √ᾱ·a + √(1 − ᾱ)·ε at
+    # ᾱ = t²/s², so E[a | z_t] comes from the mixture's denoiser, independently of its velocity.
+    g = torch.Generator().manual_seed(3)
+    z = torch.randn(64, 1, 2, generator=g, dtype=torch.float64)
+    t = torch.rand(64, generator=g, dtype=torch.float64) * 0.94
+    s = (t.square() + (1 - t).square()).sqrt()
+    clean = mixture.denoiser(z / s.reshape(-1, 1, 1), (t / s).square())
+    assert torch.allclose(velocity_from_sample(z, t, clean), mixture.velocity(z, t), atol=1e-10)
+    # Past the floor the step shrinks: 1 − t = 0.01 divides by 0.05.
+    late = torch.full((64,), 0.99, dtype=torch.float64)
+    assert torch.allclose(velocity_from_sample(z, late, clean), (clean - z) / 0.05)
 
 
 def test_bf16_velocity_does_not_drag_integration_into_bf16():

@@ -128,6 +128,21 @@ def test_save_load_identical_actions(tmp_path, decoder_type):
     assert torch.equal(loaded.normalizers["actions"].std, torch.tensor([0.1, 0.2, 3.0]))
 
 
+def test_sample_head_survives_save_load_and_older_checkpoints_keep_velocity(tmp_path):
+    import json
+    policy = make("mean_flow", flow_prediction="sample").eval()
+    policy.save_pretrained(tmp_path / "new")
+    b = batch(actions=False)
+    a = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(5))
+    loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "new").eval()
+    assert torch.equal(a, loaded.predict_action_chunk(b, generator=torch.Generator().manual_seed(5)))
+    # A checkpoint written before the field existed has a velocity head.
+    cfg = json.loads((tmp_path / "new" / "config.json").read_text())
+    del cfg["flow_prediction"]
+    (tmp_path / "new" / "config.json").write_text(json.dumps(cfg))
+    assert ActionDecoderPolicy.from_pretrained(tmp_path / "new").config.flow_prediction == "velocity"
+
+
 def test_checkpoint_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="config.json"):
         ActionDecoderPolicy.from_pretrained(tmp_path)
@@ -172,6 +187,30 @@ def test_network_called_k_times_and_prefix_once(decoder_type, sampler):
         mp.setattr(ActionExpert, "build_prefix", counting_build)
         policy(b, sampler=sampler, steps=5)
     assert calls == {"forward": 5, "prefix": 1}
+
+
+@pytest.mark.parametrize("decoder_type, steps", [("flow_matching", 1), ("flow_matching", 10), ("mean_flow", 1),
+                                                 ("mean_flow", 2)])
+def test_sample_head_lands_on_its_prediction_whatever_the_noise(decoder_type, steps):
+    # A head predicting the clean chunk c makes every step aim at c: the samples are c, with no
+    # trace of the noise, at every K ≤ 1/SAMPLE_CLIP. A velocity head outputting c is not.
+    c = torch.randn(6, 8, 3)
+    for prediction, exact in (("sample", True), ("velocity", False)):
+        policy = make(decoder_type, flow_prediction=prediction).eval()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(ActionExpert, "forward", lambda self, x, *a, **k: c)
+            outs = [policy.sample(batch(actions=False), steps=steps, generator=torch.Generator().manual_seed(s))
+                    for s in (0, 1)]
+        target = policy.normalizers["actions"].unnormalize(c)
+        assert all(torch.allclose(o.actions, target, atol=1e-5) == exact for o in outs)
+
+
+def test_sample_head_trains_every_parameter_through_the_jvp():
+    policy = make("mean_flow", flow_prediction="sample", meanflow_ratio_r_neq_t=1.0)
+    loss = policy(batch()).loss
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.parameters() if p.requires_grad)
 
 
 def test_masked_context_does_not_influence_actions():

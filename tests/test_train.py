@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from action_decoder.train import weight_average
+from action_decoder.train import TrainConfig, decoder_config, weight_average
 
 
 def test_weight_average_starts_at_the_weights_warms_up_then_caps():
@@ -21,3 +21,10 @@ def test_weight_average_starts_at_the_weights_warms_up_then_caps():
 
 def test_weight_average_off():
     assert weight_average(torch.nn.Linear(1, 1), 0.0) is None
+
+
+@pytest.mark.parametrize("decoder, chosen, head", [("mean_flow", None, "sample"), ("flow_matching", None, "velocity"),
+                                                  ("mean_flow", "velocity", "velocity")])
+def test_train_picks_the_head_per_decoder(decoder, chosen, head):
+    cfg = TrainConfig(decoder=decoder, flow_prediction=chosen)
+    assert decoder_config(cfg, 39, 4, ["push-v3"]).flow_prediction == head

@@ -16,6 +16,7 @@ from .state_layout import METAWORLD_STATE_DIM, STATE_LAYOUTS, feature_dim
 
 DECODER_TYPES = ("DDPM", "flow_matching", "mean_flow")
 PREDICTION_TYPES = ("epsilon", "sample")
+FLOW_PREDICTIONS = ("velocity", "sample")
 # The DDPM schedules diffusers' DDPMScheduler and DPMSolverMultistepScheduler both accept.
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
@@ -56,6 +57,9 @@ class DecoderConfig:
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
+    # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
+    # v = (x̂ − x)/(1 − t) (1 − t clipped at SAMPLE_CLIP), so that no step has to carry the noise.
+    flow_prediction: str = "velocity"
     # --- the Action Expert network ---
     state_dim: int = 39
     action_dim: int = 4
@@ -91,6 +95,7 @@ class DecoderConfig:
         _choice("normalization_mode", self.normalization_mode, NORMALIZATION_MODES)
         _choice("state_layout", self.state_layout, STATE_LAYOUTS)
         _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
+        _choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
         for name in ("num_train_timesteps", "num_inference_timesteps", "action_chunk_size",
                      "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
                      "num_attention_heads", "num_key_value_heads", "n_action_steps"):

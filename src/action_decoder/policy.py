@@ -20,7 +20,8 @@ from torch import Tensor, nn
 from .config import DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
-                    sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow)
+                    sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow,
+                    velocity_from_sample)
 from .normalize import make_normalizers
 from .state_layout import relative_positions
 
@@ -42,6 +43,8 @@ class PolicyOutput:
     grid: Optional[Tensor] = None
     metrics: dict = field(default_factory=dict)
 
+
+SAMPLE_CLIP = 0.05   # 1 − t floor of flow_prediction="sample": bounds the gain on the network's error
 
 @dataclass
 class Bound:
@@ -124,6 +127,11 @@ class ActionDecoderPolicy(nn.Module):
              prefix: Optional[Prefix]) -> Tensor:
         return self.model(x, t, r, state, ctrl_freq=ctrl_freq, prefix=prefix)
 
+    def _flow_net(self, x: Tensor, t: Tensor, r: Tensor, **cond) -> Tensor:
+        """The FM/MeanFlow head as a velocity, whatever `flow_prediction` the network outputs."""
+        out = self._net(x, t, r, **cond)
+        return out if self.config.flow_prediction == "velocity" else velocity_from_sample(x, t, out, SAMPLE_CLIP)
+
     def _ddpm_time(self, timestep: Tensor) -> Tensor:
         # diffusers' step 0 is data, T−1 noise; ours t = 1 is data.
         return 1.0 - timestep.float() / self.config.num_train_timesteps
@@ -134,8 +142,8 @@ class ActionDecoderPolicy(nn.Module):
         cond = self._prepare(batch)
         state, ctrl, prefix = cond["state"], cond["ctrl_freq"], cond["prefix"]
         bound = Bound(
-            velocity=lambda x, t: self._net(x, t, t, state, ctrl, prefix),
-            avg_velocity=lambda x, t, r: self._net(x, t, r, state, ctrl, prefix),
+            velocity=lambda x, t: self._flow_net(x, t, t, **cond),
+            avg_velocity=lambda x, t, r: self._flow_net(x, t, r, **cond),
             model_output=lambda x, s: self._net(x, self._ddpm_time(s), self._ddpm_time(s), state, ctrl, prefix),
             batch_size=state.shape[0])
         if self.config.decoder_type == "flow_matching":
@@ -151,9 +159,9 @@ class ActionDecoderPolicy(nn.Module):
         actions = self.normalizers["actions"].normalize(batch["actions"].to(cond["state"].device, torch.float32))
         cfg = self.config
         if cfg.decoder_type == "flow_matching":
-            loss = flow_matching_loss(lambda x, t, **c: self._net(x, t, t, **c), actions, generator, cond)
+            loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond)
         elif cfg.decoder_type == "mean_flow":
-            loss = meanflow_loss(self._net, actions, generator, cond,
+            loss = meanflow_loss(self._flow_net, actions, generator, cond,
                                  ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, time_mean=cfg.meanflow_time_mean,
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist)

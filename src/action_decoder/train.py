@@ -83,6 +83,9 @@ class TrainConfig:
     """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     meanflow_time_dist: Literal["uniform", "logit_normal"] = "uniform"
     """MeanFlow: distribution of (t, r); uniform covers the whole interval that 1-step sampling uses."""
+    flow_prediction: Optional[Literal["velocity", "sample"]] = None
+    """FM/MeanFlow head: the velocity, or the clean chunk it aims at. None: the clean chunk for
+    MeanFlow (on 4 hard tasks 1-step success 72.5 → 83.5 %), the velocity for FM (GO-1's head)."""
     checkpoint_every: int = 500
     log_every: int = 25
     resume: bool = False
@@ -162,6 +165,10 @@ def augment_shift(cfg: TrainConfig) -> float:
     return cfg.augment_shift
 
 
+def flow_prediction(cfg: TrainConfig) -> str:
+    return cfg.flow_prediction or ("sample" if cfg.decoder == "mean_flow" else "velocity")
+
+
 def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: list[str]) -> DecoderConfig:
     k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
     return DecoderConfig(state_layout=state_layout(cfg),
@@ -171,7 +178,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
-        meanflow_time_dist=cfg.meanflow_time_dist,
+        meanflow_time_dist=cfg.meanflow_time_dist, flow_prediction=flow_prediction(cfg),
         extra={"tasks": tasks, "train": asdict(cfg)})
 
 

@@ -2,7 +2,7 @@
 
 from .ddpm import ddpm_loss, sample_ddpm
 from .losses import flow_matching_loss, meanflow_loss, meanflow_target
-from .paths import interpolate, score_from_velocity, time_grid
+from .paths import interpolate, score_from_velocity, time_grid, velocity_from_sample
 from .samplers import (SDEResult, chain_log_prob, sample_meanflow, sample_ode, sample_sde,
                        velocity_from_meanflow)
 from .sigma import ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, make_sigma
@@ -10,4 +10,5 @@ from .sigma import ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, make_
 __all__ = ["ChurnSigma", "ExploringSigma", "FixedSigma", "LearnableSigma", "SDEResult",
            "chain_log_prob", "ddpm_loss", "flow_matching_loss", "interpolate", "make_sigma",
            "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
-           "sample_sde", "score_from_velocity", "time_grid", "velocity_from_meanflow"]
+           "sample_sde", "score_from_velocity", "time_grid", "velocity_from_meanflow",
+           "velocity_from_sample"]

@@ -36,6 +36,15 @@ def score_from_velocity(x: Tensor, v: Tensor, t: Tensor, clip_t: float = 0.0) ->
     return (t * v - x) / (1 - t).clamp_min(clip_t)
 
 
+def velocity_from_sample(x: Tensor, t: Tensor, sample: Tensor, clip: float = 0.05) -> Tensor:
+    """(x̂ − x) / (1 − t): the velocity that carries x at time t straight to the clean chunk x̂ at
+    t = 1, with 1 − t floored at `clip`. A head that predicts x̂ instead of the velocity need not
+    reproduce the noise in its output: with x̂ exact, one Euler step already lands on it."""
+    dtype = compute_dtype(x)
+    t = t.to(dtype).reshape(-1, *([1] * (x.dim() - 1)))
+    return (sample.to(dtype) - x.to(dtype)) / (1 - t).clamp_min(clip)
+
+
 def compute_dtype(noise: Tensor) -> torch.dtype:
     """Integrate in float32 whatever the network returns; float64 when the noise is float64."""
     return torch.float64 if noise.dtype == torch.float64 else torch.float32
