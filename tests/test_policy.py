@@ -193,7 +193,7 @@ def test_network_called_k_times_and_prefix_once(decoder_type, sampler):
                                                  ("mean_flow", 2)])
 def test_sample_head_lands_on_its_prediction_whatever_the_noise(decoder_type, steps):
     # A head predicting the clean chunk c makes every step aim at c: the samples are c, with no
-    # trace of the noise, at every K ≤ 1/SAMPLE_CLIP. A velocity head outputting c is not.
+    # trace of the noise, at every K ≤ 20 (1 − t is floored at 0.05). A velocity head outputting c is not.
     c = torch.randn(6, 8, 3)
     for prediction, exact in (("sample", True), ("velocity", False)):
         policy = make(decoder_type, flow_prediction=prediction).eval()

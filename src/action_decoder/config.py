@@ -58,7 +58,7 @@ class DecoderConfig:
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
-    # v = (x̂ − x)/(1 − t) (1 − t clipped at SAMPLE_CLIP), so that no step has to carry the noise.
+    # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
     # --- the Action Expert network ---
     state_dim: int = 39

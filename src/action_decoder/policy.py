@@ -44,8 +44,6 @@ class PolicyOutput:
     metrics: dict = field(default_factory=dict)
 
 
-SAMPLE_CLIP = 0.05   # 1 − t floor of flow_prediction="sample": bounds the gain on the network's error
-
 @dataclass
 class Bound:
     """The network bound to one batch's conditioning: the callables the math consumes."""
@@ -130,7 +128,7 @@ class ActionDecoderPolicy(nn.Module):
     def _flow_net(self, x: Tensor, t: Tensor, r: Tensor, **cond) -> Tensor:
         """The FM/MeanFlow head as a velocity, whatever `flow_prediction` the network outputs."""
         out = self._net(x, t, r, **cond)
-        return out if self.config.flow_prediction == "velocity" else velocity_from_sample(x, t, out, SAMPLE_CLIP)
+        return out if self.config.flow_prediction == "velocity" else velocity_from_sample(x, t, out)
 
     def _ddpm_time(self, timestep: Tensor) -> Tensor:
         # diffusers' step 0 is data, T−1 noise; ours t = 1 is data.
