@@ -166,6 +166,7 @@ def augment_shift(cfg: TrainConfig) -> float:
 
 
 def flow_prediction(cfg: TrainConfig) -> str:
+    """The head `cfg.flow_prediction` names, or the decoder's measured default."""
     return cfg.flow_prediction or ("sample" if cfg.decoder == "mean_flow" else "velocity")
 
 
@@ -399,8 +400,9 @@ def train(cfg: TrainConfig) -> Path:
         print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training)", flush=True)
     if world > 1:
         torch.distributed.barrier()
-        # Free DDP's reducer (it holds the last gloo work) now: left to a reference cycle, it would
-        # be destroyed during interpreter shutdown, where gloo can abort the process (SIGABRT).
+        # Free DDP's reducer (it holds the last gloo work) while the interpreter is alive: a
+        # reference cycle otherwise keeps it to shutdown. Gloo still aborted at exit once in two
+        # CI runs after this (session 12); the cause there is not found.
         del model
         gc.collect()
     return final
