@@ -169,3 +169,18 @@ def test_torchrun_two_processes_stay_in_sync(tmp_path, env, decoder):
     maxdiff = float(res.stdout.split("MAXDIFF")[1].split()[0])
     assert maxdiff == 0.0   # each rank drew different rows and noise: equal only if gradients were all-reduced
     assert (tmp_path / "out" / "final" / "model.safetensors").is_file()
+
+
+def test_torchrun_cli_as_the_readme_writes_it(tmp_path, env, monkeypatch):
+    from action_decoder.data import generate_demos
+    monkeypatch.setenv("ACTION_DECODER_CACHE", env["ACTION_DECODER_CACHE"])
+    generate_demos("reach-v3", 2, 0)
+    out = tmp_path / "ddp"
+    res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+                          "--master_port", str(29600 + os.getpid() % 1000), "-m", "action_decoder.cli", "train",
+                          *TINY, "--decoder", "flow_matching", "--steps", "3", "--device", "cpu",
+                          "--eval-episodes", "0", "--output-dir", str(out)],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert res.stdout.count("saved ") == 1, res.stdout      # rank 0 writes, rank 1 does not
+    assert ActionDecoderPolicy.from_pretrained(out / "final").config.decoder_type == "flow_matching"

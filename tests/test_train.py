@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from action_decoder.train import TrainConfig, decoder_config, weight_average
+from action_decoder.train import TrainConfig, _check, decoder_config, weight_average
 
 
 def test_weight_average_starts_at_the_weights_warms_up_then_caps():
@@ -28,3 +28,9 @@ def test_weight_average_off():
 def test_train_picks_the_head_per_decoder(decoder, chosen, head):
     cfg = TrainConfig(decoder=decoder, flow_prediction=chosen)
     assert decoder_config(cfg, 39, 4, ["push-v3"]).flow_prediction == head
+
+
+def test_flow_head_given_to_ddpm_is_refused_not_ignored():
+    with pytest.raises(ValueError, match="--flow-prediction.*--decoder DDPM"):
+        _check(TrainConfig(decoder="DDPM", flow_prediction="sample"))
+    _check(TrainConfig(decoder="DDPM"))

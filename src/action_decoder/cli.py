@@ -45,5 +45,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def entry() -> None:
+    """The console script and `python -m action_decoder.cli`: `main()`'s code as the exit status.
+
+    A rank under torchrun or accelerate leaves without interpreter teardown: gloo's worker threads
+    can abort a finished process there ("terminate called without an active exception", seen in
+    CI; pytorch#179291). Its group is destroyed and its files are closed by then."""
+    code = main()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

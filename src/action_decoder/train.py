@@ -293,6 +293,10 @@ def _check(cfg: TrainConfig) -> None:
         raise ValueError(f"--ema-decay: expected a decay in [0, 1), got {cfg.ema_decay}")
     if cfg.lr <= 0:
         raise ValueError(f"--lr: expected a positive learning rate, got {cfg.lr}")
+    if cfg.flow_prediction is not None and cfg.decoder == "DDPM":
+        raise ValueError(f"--flow-prediction: sets the flow matching or MeanFlow head, not DDPM's target "
+                         f"(that is --prediction-type epsilon|sample); got --flow-prediction "
+                         f"{cfg.flow_prediction} with --decoder DDPM")
     demo_noise(cfg)
 
 
@@ -401,8 +405,8 @@ def train(cfg: TrainConfig) -> Path:
     if world > 1:
         torch.distributed.barrier()
         # Free DDP's reducer (it holds the last gloo work) while the interpreter is alive: a
-        # reference cycle otherwise keeps it to shutdown. Gloo still aborted at exit once in two
-        # CI runs after this (session 12); the cause there is not found.
+        # reference cycle otherwise keeps it to shutdown. That alone did not stop gloo aborting at
+        # exit (CI, session 12): the console script's ranks also skip teardown (cli.entry).
         del model
         gc.collect()
     return final
