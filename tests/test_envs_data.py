@@ -69,7 +69,20 @@ def test_layouts_reproducible_and_disjoint():
     goals_differ = np.abs(demo[:, None, -3:] - evals[None, :, -3:]).max(-1) > 1e-6
     assert goals_differ.all()
     with pytest.raises(ValueError, match="seed"):
-        demo_seeds(999_990, 20)
+        demo_seeds(500, 20)             # would reach RL's training layouts
+    with pytest.raises(ValueError, match="at most 1000 demonstration attempts"):
+        demo_seeds(0, 1001)             # would take seed 1's demonstrations
+    with pytest.raises(ValueError, match="num_episodes: expected at most 333 demonstrations"):
+        generate_demos("metaworld/reach", 334)
+
+
+def test_seeds_draw_disjoint_demonstrations_and_evaluations():
+    assert demo_seeds(0, 30) == list(range(30)) and eval_seeds(0, 3) == [1_000_000, 1_000_001, 1_000_002]
+    demos = [set(demo_seeds(s, 1000)) for s in (0, 1, 2, 499)]
+    evals = [set(eval_seeds(s, 1000)) for s in (0, 1, 2, 499)]
+    for i, a in enumerate(demos + evals):
+        for b in (demos + evals)[i + 1:]:
+            assert a.isdisjoint(b)
 
 
 def test_episode_cap_raises():
@@ -94,6 +107,7 @@ def test_demos_layout_and_dataset(reach_demos):
         assert column in table.column_names
     assert table["next.success"].to_pylist()[-1]
     assert generate_demos("metaworld/reach", 2, seed=0) == root  # cached
+    assert info["source"]["first_layout"] == 0
 
     ds = load_dataset(root)
     assert ds.num_episodes == 2 and ds.states.shape == (info["total_frames"], 39) and ds.actions.shape[1] == 4
@@ -102,6 +116,30 @@ def test_demos_layout_and_dataset(reach_demos):
         assert all(stats[k].shape == (dim,) for k in ("mean", "std", "min", "max"))
     state_std = ds.stats["observation.state"]["std"]
     assert state_std.min() == pytest.approx(1e-2)  # constant dims (e.g. unused object slots) floored
+
+
+def test_demo_cache_from_before_the_seed_stride_is_regenerated(tmp_path):
+    old = generate_demos("metaworld/reach", 2, seed=1, cache_dir=tmp_path)
+    info_path = old / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    assert info["source"]["first_layout"] == 1000
+    first = pq.read_table(old / "data" / "chunk-000" / "episode_000000.parquet")["observation.state"].to_pylist()[0]
+    del info["source"]["first_layout"]                  # as written when seed 1 began at layout 1
+    info_path.write_text(json.dumps(info))
+    fresh = generate_demos("metaworld/reach", 2, seed=1, cache_dir=tmp_path)
+    assert json.loads((fresh / "meta" / "info.json").read_text())["source"]["first_layout"] == 1000
+    again = pq.read_table(fresh / "data" / "chunk-000" / "episode_000000.parquet")["observation.state"].to_pylist()[0]
+    assert again == first
+    np.testing.assert_allclose(first, make_env("reach", seed=0).reset(seed=1000)[0], atol=1e-5)
+    # seed 0's caches began at layout 0 under both rules: kept
+    zero = generate_demos("metaworld/reach", 2, seed=0, cache_dir=tmp_path)
+    info0 = json.loads((zero / "meta" / "info.json").read_text())
+    del info0["source"]["first_layout"]
+    (zero / "meta" / "info.json").write_text(json.dumps(info0))
+    episode = zero / "data" / "chunk-000" / "episode_000000.parquet"
+    mtime = episode.stat().st_mtime_ns
+    assert generate_demos("metaworld/reach", 2, seed=0, cache_dir=tmp_path) == zero
+    assert episode.stat().st_mtime_ns == mtime
 
 
 def test_noisy_demos_record_the_clean_expert_action(reach_demos):

@@ -3,8 +3,8 @@
 Only successful episodes are kept. An episode is recorded until ``POST_SUCCESS_STEPS``
 frames after the first success (or Meta-World's 500-step cap): the chunks that start
 near success then hold real actions rather than padding, and the demonstrations stay
-short. Attempt ``k`` uses layout seed ``seed + k`` (see ``envs.demo_seeds``), always
-disjoint from evaluation layouts.
+short. Attempt ``k`` uses layout seed ``seed·1000 + k`` (``envs.demo_seeds``): seeds draw
+disjoint demonstrations, always disjoint from evaluation layouts.
 
 ``action_noise`` records demonstrations the DART way (Laskey et al. 2017): the env executes
 the expert's action plus Gaussian noise while the dataset keeps the expert's clean action. The
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..envs.metaworld_tasks import (MAX_EPISODE_STEPS, canonical_task, demo_seeds, expert_policy, make_env,
-                                    resolve_tasks, restore_state, save_state)
+from ..envs.metaworld_tasks import (MAX_EPISODE_STEPS, SEED_STRIDE, canonical_task, demo_seeds, expert_policy,
+                                    make_env, resolve_tasks, restore_state, save_state)
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset, write_episodes
 
@@ -45,9 +45,15 @@ def cache_root() -> Path:
     return Path(os.environ.get(CACHE_ENV_VAR) or "~/.cache/action_decoder").expanduser()
 
 
-def _is_complete(path: Path, num_episodes: int) -> bool:
+def _is_complete(path: Path, num_episodes: int, first_layout: int) -> bool:
+    """All episodes there, drawn from today's layouts (before SEED_STRIDE, seed s began at layout s)."""
     info = path / "meta" / "info.json"
-    return info.exists() and json.loads(info.read_text()).get("total_episodes") == num_episodes
+    if not info.exists():
+        return False
+    meta = json.loads(info.read_text())
+    source = meta.get("source", {})
+    return (meta.get("total_episodes") == num_episodes
+            and source.get("first_layout", source.get("seed")) == first_layout)
 
 
 def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
@@ -114,10 +120,15 @@ def generate_demos(
                          f"got {action_noise!r}")
     suffix = f"-dart{action_noise:g}" if action_noise > 0 else ""
     final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
-    if _is_complete(final, num_episodes):
+    attempts = math.ceil(num_episodes * max_attempts_factor)
+    if attempts > SEED_STRIDE:
+        raise ValueError(f"num_episodes: expected at most {int(SEED_STRIDE // max_attempts_factor)} demonstrations "
+                         f"per seed ({max_attempts_factor:g} attempts each within the seed's {SEED_STRIDE} layouts), "
+                         f"got {num_episodes}")
+    seeds = demo_seeds(seed, attempts)
+    if _is_complete(final, num_episodes, seeds[0]):
         return final
 
-    seeds = demo_seeds(seed, math.ceil(num_episodes * max_attempts_factor))
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     for attempt, layout_seed in enumerate(seeds, start=1):
         episode = _rollout(env, expert, layout_seed, action_noise)
@@ -136,11 +147,11 @@ def generate_demos(
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
-              "seed": seed, "attempts": attempt, "expert_success_rate": num_episodes / attempt,
+              "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
               "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise}
     write_episodes(tmp, episodes, [name], round(1.0 / env.unwrapped.dt, 6), {"robot_type": "sawyer", "source": source})
-    if final.exists() and not _is_complete(final, num_episodes):
-        shutil.rmtree(final)  # a stale partial cache entry
+    if final.exists() and not _is_complete(final, num_episodes, seeds[0]):
+        shutil.rmtree(final)  # a stale or partial cache entry
     try:
         os.rename(tmp, final)
     except OSError:  # another process finished the same dataset first

@@ -18,6 +18,11 @@ import numpy as np
 PREFIX = "metaworld/"
 EVAL_SEED_OFFSET = 1_000_000
 """Demonstration episodes use seeds below this offset, evaluation episodes at or above it."""
+SEED_STRIDE = 1_000
+"""Layouts per run seed: seed s owns demonstration layouts s·1000 + [0, 1000) and evaluation layouts
+EVAL_SEED_OFFSET + s·1000 + [0, 1000), so seeds give disjoint demonstration subsets (seed 0 keeps 0, 1, …)."""
+DEMO_SEED_LIMIT = 500_000
+"""Demonstration layouts stay below this (RL fine-tuning trains on [500 000, 900 000))."""
 MAX_EPISODE_STEPS = 500
 """Meta-World's episode cap (``max_path_length``): stepping past it raises."""
 
@@ -94,20 +99,23 @@ def canonical_task(task: str) -> str:
 
 
 def demo_seeds(seed: int, n: int) -> list[int]:
-    """Layout seeds of demonstration attempts: ``seed, seed+1, ...`` (all below EVAL_SEED_OFFSET)."""
-    if seed < 0 or seed + n > EVAL_SEED_OFFSET:
-        raise ValueError(
-            f"seed: expected 0 <= seed and seed + {n} attempts <= {EVAL_SEED_OFFSET} so that "
-            f"demonstration layouts never meet evaluation layouts, got seed={seed}"
-        )
-    return list(range(seed, seed + n))
+    """Layout seeds of demonstration attempts: ``seed·SEED_STRIDE + k`` for k < n (at most SEED_STRIDE)."""
+    if not 0 <= seed < DEMO_SEED_LIMIT // SEED_STRIDE:
+        raise ValueError(f"seed: expected 0 <= seed < {DEMO_SEED_LIMIT // SEED_STRIDE} for Meta-World demonstrations "
+                         f"(each seed owns {SEED_STRIDE} layouts below {DEMO_SEED_LIMIT}), got {seed}")
+    if n > SEED_STRIDE:
+        raise ValueError(f"attempts: expected at most {SEED_STRIDE} demonstration attempts per seed (the layouts "
+                         f"it owns), got {n}")
+    return list(range(seed * SEED_STRIDE, seed * SEED_STRIDE + n))
 
 
 def eval_seeds(seed: int, n: int) -> list[int]:
-    """Layout seeds of evaluation episodes: ``EVAL_SEED_OFFSET + seed + j``."""
+    """Layout seeds of evaluation episodes: ``EVAL_SEED_OFFSET + seed·SEED_STRIDE + j`` (beyond
+    SEED_STRIDE episodes they run into the next seed's evaluation layouts, never into demonstrations)."""
     if seed < 0:
         raise ValueError(f"seed: expected an integer >= 0, got {seed}")
-    return list(range(EVAL_SEED_OFFSET + seed, EVAL_SEED_OFFSET + seed + n))
+    start = EVAL_SEED_OFFSET + seed * SEED_STRIDE
+    return list(range(start, start + n))
 
 
 class SeededLayoutEnv(gym.Wrapper):
