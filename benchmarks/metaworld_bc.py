@@ -190,7 +190,8 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
             + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
             + f", {args.steps} training steps, the first {args.n_action_steps} actions of each chunk executed "
             f"before re-planning (the MLP reference: {MLP_N_ACTION_STEPS}), "
-            f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations; "
+            f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations (seed s: "
+            f"demonstrations from layouts s·1000 + k, evaluation on 1 000 000 + s·1000 + j); "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
             f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
             + "\n".join(lines) + "\n")

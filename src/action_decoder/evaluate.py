@@ -27,6 +27,7 @@ class EvalConfig:
     steps: int = 0
     """Sampling steps K (0: the checkpoint's num_inference_timesteps)."""
     seed: int = 0
+    """Evaluation layouts 1 000 000 + seed·1000 + j: never a demonstration's layout."""
     n_action_steps: int = 0
     """Actions executed per chunk before re-planning (0: the checkpoint's n_action_steps)."""
     task: Optional[str] = None

@@ -49,7 +49,8 @@ class TrainConfig:
     from each state). 0: plain expert rollouts."""
     output_dir: str = "outputs/train"
     seed: int = 0
-    """Seeds the demonstration layouts, the network and the data order."""
+    """Seeds the network and the data order, and picks the demonstrations: seed s records Meta-World
+    layouts s·1000, s·1000 + 1, … (0 ≤ s < 500), so seeds train on disjoint demonstrations."""
     batch_size: int = 128
     """Global batch size (split across processes)."""
     lr: float = 1e-3
