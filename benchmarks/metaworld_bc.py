@@ -159,10 +159,10 @@ def matching(rows: list[dict], want: dict) -> list[dict]:
 
 
 def tabulate(rows: list[dict]) -> dict:
-    """{task: {method: [success per seed]}}."""
+    """{task: {method: {seed: success}}}."""
     table: dict = {}
     for r in rows:
-        table.setdefault(r["task"], {}).setdefault((r["decoder"], r["sampler"], r["steps"]), []).append(r["success"])
+        table.setdefault(r["task"], {}).setdefault((r["decoder"], r["sampler"], r["steps"]), {})[r["seed"]] = r["success"]
     return table
 
 
@@ -170,20 +170,20 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     methods = [m for m in METHODS if any(m in row for row in table.values())]
     lines = ["| task | " + " | ".join(LABELS[m] for m in methods) + " |",
              "|---|" + "---:|" * len(methods)]
-    # Columns are compared on the same tasks: the mean row skips a task any column lacks.
-    complete = [t for t in table if all(m in table[t] for m in methods)]
-    means = {m: [statistics.mean(table[t][m]) for t in complete] for m in methods}
+    # Columns are compared on the same runs: the mean row takes the (task, seed) pairs every column has.
+    pairs = [(t, s) for t in table for s in sorted(set.intersection(*(set(table[t].get(m, {})) for m in methods)))]
+    means = {m: [table[t][m][s] for t, s in pairs] for m in methods}
     for task in sorted(table):
         cells = []
         for m in methods:
-            vals = table[task].get(m, [])
+            vals = list(table[task].get(m, {}).values())
             if vals:
                 sd = f" ± {100 * statistics.stdev(vals):.0f}" if len(vals) > 1 else ""
                 cells.append(f"{100 * statistics.mean(vals):.0f}{sd} ({len(vals)})")
             else:
                 cells.append("–")
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
-    lines.append(f"| **mean ({len(complete)} tasks with every column)** | " + " | ".join(
+    lines.append(f"| **mean ({len({t for t, _ in pairs})} tasks, {len(pairs)} (task, seed) runs with every column)** | " + " | ".join(
         f"**{100 * statistics.mean(means[m]):.1f}**" if means[m] else "–" for m in methods) + " |")
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
             f"{args.demos} demonstrations per task"

@@ -95,9 +95,9 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
         {"decoder_type": "flow_matching", "sampler": "ode", "steps": 10, "success_rate": 0.55, "seed": 0,
          "per_task": {"reach-v3": 0.9, "push-v3": 0.2}, "recipe": {"demos": 2, "train_steps": 20}}))
     table = metaworld_bc.tabulate(metaworld_bc.collect(tmp_path / "runs"))
-    assert table["push-v3"] == {("flow_matching", "ode", 10): [0.2]}
-    assert table["reach-v3"][("flow_matching", "ode", 10)] == [0.9]
-    assert table["reach-v3"][("mlp_baseline", "ode", 1)] == [res["success_k1"]]
+    assert table["push-v3"] == {("flow_matching", "ode", 10): {0: 0.2}}
+    assert table["reach-v3"][("flow_matching", "ode", 10)] == {0: 0.9}
+    assert table["reach-v3"][("mlp_baseline", "ode", 1)] == {0: res["success_k1"]}
 
 
 def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monkeypatch, tmp_path):
@@ -116,11 +116,11 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
     want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld",
             "augment_shift": 0.05, "n_action_steps": 8}
     table = metaworld_bc.tabulate(metaworld_bc.matching(merged, want))
-    assert table == {"push-v3": {("mean_flow", "ode", 1): [0.9, 0.7]}, "hammer-v3": {("mean_flow", "ode", 1): [0.3]}}
+    assert table == {"push-v3": {("mean_flow", "ode", 1): {0: 0.9, 1: 0.7}}, "hammer-v3": {("mean_flow", "ode", 1): {0: 0.3}}}
     noisy = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "demo_noise": 0.3}))
-    assert noisy == {"push-v3": {("mean_flow", "ode", 1): [0.2]}}
+    assert noisy == {"push-v3": {("mean_flow", "ode", 1): {0: 0.2}}}
     replanned = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "n_action_steps": 4}))
-    assert replanned == {"push-v3": {("mean_flow", "ode", 1): [0.6]}}
+    assert replanned == {"push-v3": {("mean_flow", "ode", 1): {0: 0.6}}}
 
     # A run whose rows a results file already holds is not trained again.
     args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {
@@ -157,11 +157,14 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
     md = tmp_path / "bc.md"
     metaworld_bc.write_table(table, md, args, results)
     md.write_text(md.read_text() + "What the table says.\n")
-    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): [0.5]}}, md, args, results)
+    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): {0: 0.5}}}, md, args, results)
     assert "| push-v3 | 50 (1) |" in text and "hammer" not in md.read_text()
-    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): [0.5], ("flow_matching", "ode", 1): [1.0]},
-                                     "hammer-v3": {("mean_flow", "ode", 1): [0.1]}}, md, args, results)
-    assert "| **mean (1 tasks with every column)** | **100.0** | **50.0** |" in text, "hammer lacks FM: not in the mean"
+    text = metaworld_bc.write_table({"push-v3": {("mean_flow", "ode", 1): {0: 0.5, 1: 0.9},
+                                                 ("flow_matching", "ode", 1): {0: 1.0}},
+                                     "hammer-v3": {("mean_flow", "ode", 1): {0: 0.1}}}, md, args, results)
+    assert "| push-v3 | 100 (1) | 70 ± 28 (2) |" in text, "a cell: every seed of its column"
+    assert "| **mean (1 tasks, 1 (task, seed) runs with every column)** | **100.0** | **50.0** |" in text, \
+        "the mean: hammer lacks FM, and FM lacks push's seed 1"
     assert md.read_text().endswith(metaworld_bc.NOTES + "\nWhat the table says.\n")
 
 
