@@ -165,6 +165,7 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
     assert "| push-v3 | 100 (1) | 70 ± 28 (2) |" in text, "a cell: every seed of its column"
     assert "| **mean (1 tasks, 1 (task, seed) runs with every column)** | **100.0** | **50.0** |" in text, \
         "the mean: hammer lacks FM, and FM lacks push's seed 1"
+    assert "| mean of task means, each column's own seeds (1 tasks) | 100.0 | 70.0 |" in text
     assert md.read_text().endswith(metaworld_bc.NOTES + "\nWhat the table says.\n")
 
 
