@@ -171,7 +171,8 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     lines = ["| task | " + " | ".join(LABELS[m] for m in methods) + " |",
              "|---|" + "---:|" * len(methods)]
     # Columns are compared on the same runs: the mean row takes the (task, seed) pairs every column has.
-    pairs = [(t, s) for t in table for s in sorted(set.intersection(*(set(table[t].get(m, {})) for m in methods)))]
+    shared = {t: sorted(set.intersection(*(set(table[t].get(m, {})) for m in methods))) for t in table}
+    pairs = [(t, s) for t in table for s in shared[t]]
     means = {m: [table[t][m][s] for t, s in pairs] for m in methods}
     for task in sorted(table):
         cells = []
@@ -187,7 +188,7 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
         f"**{100 * statistics.mean(means[m]):.1f}**" if means[m] else "–" for m in methods) + " |")
     # While the seeds fill in, each column's own runs on the same tasks say more than the shared ones.
     tasks = [t for t in table if all(table[t].get(m) for m in methods)]
-    if tasks and any(len(table[t][m]) != len(set(s for tt, s in pairs if tt == t)) for t in tasks for m in methods):
+    if any(len(table[t][m]) > len(shared[t]) for t in tasks for m in methods):
         lines.append(f"| mean of task means, each column's own seeds ({len(tasks)} tasks) | " + " | ".join(
             f"{100 * statistics.mean(statistics.mean(table[t][m].values()) for t in tasks):.1f}" for m in methods) + " |")
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
