@@ -43,6 +43,9 @@ LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=
           ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
           ("mlp_baseline", "ode", 1): "MLP ref. K=1", ("scripted_expert", "expert", 1): "expert"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
+# Every run trained before session 14 used 5000 steps of batch 128; it neither recorded its batch in
+# the results nor put its budget in its directory name. Other budgets do both.
+LEGACY_BUDGET = {"train_steps": 5000, "batch_size": 128}
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 
 
@@ -57,8 +60,11 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     its rows into --results at once (a session cut off mid-grid keeps every finished run)."""
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
         return                          # measured in an earlier session: kept in --results
-    noise = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
-    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{noise}_{decoder}"  # task: one task, or a group (--multitask)
+    tag = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
+    if decoder not in ("mlp_baseline", "scripted_expert") and \
+            {"train_steps": args.steps, "batch_size": args.batch_size} != LEGACY_BUDGET:   # the references': fixed
+        tag += f"_{args.steps}x{args.batch_size}"
+    run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{tag}_{decoder}"  # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
     if decoder == "scripted_expert":    # the ceiling: the demonstrator on the same evaluation layouts
@@ -78,7 +84,8 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
         resume = ["--resume"] if (run / "checkpoints" / "last").is_file() else []
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos),
               "--demo-noise", str(args.demo_noise), "--steps",
-              str(args.steps), "--seed", str(seed), "--output-dir", str(run), "--eval-episodes", "0",
+              str(args.steps), "--batch-size", str(args.batch_size), "--seed", str(seed), "--output-dir", str(run),
+              "--eval-episodes", "0",
               "--no-progress", *resume], log)
     n = args.n_action_steps            # an evaluation setting: one trained policy serves every n
     for dec, sampler, k in METHODS:
@@ -99,8 +106,8 @@ def _keep(run: Path, args) -> None:
 
 
 def recipe(run: Path) -> dict:
-    """How a run's policy was trained: demos and their action noise, training steps, state layout
-    and shift (read from its checkpoint; the MLP reference records its own)."""
+    """How a run's policy was trained: demos and their action noise, training steps and batch, state
+    layout and shift (read from its checkpoint; the MLP reference records its own)."""
     config = run / "final" / "config.json"
     if not config.is_file():
         return {}
@@ -111,7 +118,7 @@ def recipe(run: Path) -> dict:
     if shift is None:                                   # the default of `action-decoder train`
         shift = DEFAULT_SHIFT if layout == "metaworld" else 0.0
     return {"demos": train["demos"], "demo_noise": train.get("demo_noise", 0.0), "train_steps": train["steps"],
-            "state_layout": layout, "augment_shift": shift}
+            "batch_size": train["batch_size"], "state_layout": layout, "augment_shift": shift}
 
 
 def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
@@ -135,7 +142,7 @@ def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
 
 
 ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "demo_noise", "train_steps",
-           "state_layout", "augment_shift", "n_action_steps")
+           "batch_size", "state_layout", "augment_shift", "n_action_steps")
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
@@ -144,8 +151,11 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
     def key(r):
         return tuple(str(r.get(k)) for k in ROW_KEY)
 
-    kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
-    kept.update({key(r): r for r in rows})
+    def dated(r):                       # a trained row from before batch sizes were recorded: batch 128
+        return {"batch_size": LEGACY_BUDGET["batch_size"], **r} if "train_steps" in r else r
+
+    kept = {key(r): r for r in map(dated, json.loads(results.read_text()) if results.is_file() else [])}
+    kept.update({key(r): r for r in map(dated, rows)})
     merged = sorted(kept.values(), key=key)
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text("[\n" + ",\n".join(json.dumps(r) for r in merged) + "\n]\n")
@@ -194,7 +204,7 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
             f"{args.demos} demonstrations per task"
             + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
-            + f", {args.steps} training steps, the first {args.n_action_steps} actions of each chunk executed "
+            + f", {args.steps} training steps of batch {args.batch_size}, the first {args.n_action_steps} actions of each chunk executed "
             f"before re-planning (the MLP reference: {MLP_N_ACTION_STEPS}), "
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations (seed s: "
             f"demonstrations from layouts s·1000 + k, evaluation on 1 000 000 + s·1000 + j); "
@@ -220,6 +230,7 @@ def main(argv=None) -> None:
                    help="std of the noise on the expert's executed actions while recording (DART; the table "
                         "keeps one value)")
     p.add_argument("--steps", type=int, default=5000, help="training steps (the main job trains 1500)")
+    p.add_argument("--batch-size", type=int, default=128, help="training batch (the MLP reference: its own 256)")
     p.add_argument("--n-action-steps", type=int, default=TrainConfig.n_action_steps,
                    help="actions executed from each chunk before re-planning (evaluation only: a trained run "
                         "is re-evaluated, not retrained, for another value)")
@@ -240,7 +251,8 @@ def main(argv=None) -> None:
     if args.multitask and {"mlp_baseline", "scripted_expert"} & set(args.decoders):
         p.error("--multitask: the mlp_baseline and scripted_expert columns are per task; drop them from --decoders")
     results = args.results = Path(args.results or Path(args.table).with_suffix(".json"))
-    want = {"demos": args.demos, "demo_noise": args.demo_noise, "train_steps": args.steps, "episodes": args.episodes,
+    want = {"demos": args.demos, "demo_noise": args.demo_noise, "train_steps": args.steps,
+            "batch_size": args.batch_size, "episodes": args.episodes,
             "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT, "n_action_steps": args.n_action_steps}
     args.done = {}
     for r in [] if args.multitask else matching(merge(results, []), want):

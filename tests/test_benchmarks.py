@@ -103,28 +103,33 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
 def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monkeypatch, tmp_path):
     from benchmarks import metaworld_bc
 
-    def row(task, seed, success, train_steps=1500, demo_noise=0.0, n_action_steps=8):
+    def row(task, seed, success, train_steps=1500, demo_noise=0.0, n_action_steps=8, batch_size=128):
         return {"task": task, "seed": seed, "decoder": "mean_flow", "sampler": "ode", "steps": 1, "episodes": 50,
-                "demos": 10, "demo_noise": demo_noise, "train_steps": train_steps, "state_layout": "metaworld",
-                "augment_shift": 0.05, "n_action_steps": n_action_steps, "success": success}
+                "demos": 10, "demo_noise": demo_noise, "train_steps": train_steps, "batch_size": batch_size,
+                "state_layout": "metaworld", "augment_shift": 0.05, "n_action_steps": n_action_steps,
+                "success": success}
 
     results = tmp_path / "bc.json"
-    metaworld_bc.merge(results, [row("push-v3", 0, 0.5), row("push-v3", 1, 0.7), row("push-v3", 0, 0.1, 5000),
+    unbatched = {k: v for k, v in row("push-v3", 1, 0.7).items() if k != "batch_size"}    # written before session 14
+    metaworld_bc.merge(results, [row("push-v3", 0, 0.5), unbatched, row("push-v3", 0, 0.1, 5000),
                                  row("push-v3", 0, 0.2, demo_noise=0.3), row("push-v3", 0, 0.6, n_action_steps=4)])
-    merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3)])   # a later session
-    assert len(merged) == 6 and len(results.read_text().splitlines()) == 8     # one row per line
-    want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "episodes": 50, "state_layout": "metaworld",
-            "augment_shift": 0.05, "n_action_steps": 8}
+    merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3),   # a later session
+                                          row("push-v3", 1, 0.4, batch_size=256)])
+    assert len(merged) == 7 and len(results.read_text().splitlines()) == 9     # one row per line
+    want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "batch_size": 128, "episodes": 50,
+            "state_layout": "metaworld", "augment_shift": 0.05, "n_action_steps": 8}
     table = metaworld_bc.tabulate(metaworld_bc.matching(merged, want))
     assert table == {"push-v3": {("mean_flow", "ode", 1): {0: 0.9, 1: 0.7}}, "hammer-v3": {("mean_flow", "ode", 1): {0: 0.3}}}
+    big = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "batch_size": 256}))
+    assert big == {"push-v3": {("mean_flow", "ode", 1): {1: 0.4}}}, "a row without a batch was trained with 128"
     noisy = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "demo_noise": 0.3}))
     assert noisy == {"push-v3": {("mean_flow", "ode", 1): {0: 0.2}}}
     replanned = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "n_action_steps": 4}))
     assert replanned == {"push-v3": {("mean_flow", "ode", 1): {0: 0.6}}}
 
     # A run whose rows a results file already holds is not trained again.
-    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {
-        ("metaworld/push-v3", 0): {("mean_flow", "ode", 1), ("mean_flow", "ode", 2)}}})
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "steps": 5000, "batch_size": 128,
+                             "done": {("metaworld/push-v3", 0): {("mean_flow", "ode", 1), ("mean_flow", "ode", 2)}}})
     metaworld_bc.run_one("metaworld/push-v3", 0, "mean_flow", args)      # would need demos and minutes
     assert not (tmp_path / "runs").exists()
 
@@ -139,7 +144,7 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
              "recipe": {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "state_layout": "metaworld",
                         "augment_shift": 0.05}}))
     args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "results": results,
-                             "n_action_steps": 8, "episodes": 50})
+                             "n_action_steps": 8, "episodes": 50, "steps": 5000, "batch_size": 128})
     metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
     kept = [r for r in json.loads(results.read_text()) if r["task"] == "hammer-v3" and r["train_steps"] == 1500]
     assert sorted((r["steps"], r["success"]) for r in kept) == [(1, 0.25), (2, 0.75)], "the fresh row replaces 0.3"
@@ -152,8 +157,17 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
     assert [c[c.index("--output") + 1].rsplit("/", 1)[-1] for c in calls] == ["eval_ode_k1_n4.json", "eval_ode_k2_n4.json"]
     assert all(c[3] == "eval" and c[c.index("--n-action-steps") + 1] == "4" for c in calls), "no retraining"
 
+    # Another training budget trains a policy of its own, beside the runs made with 5000 steps of 128.
+    calls.clear()
+    args.steps, args.batch_size, args.demos = 2500, 256, 10
+    metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
+    train_cmd = calls[0]
+    assert train_cmd[3] == "train" and train_cmd[train_cmd.index("--batch-size") + 1] == "256"
+    assert train_cmd[train_cmd.index("--output-dir") + 1].endswith("hammer-v3_s0_2500x256_mean_flow")
+
     # The table is rebuilt; what was written below it by hand stays.
-    args = type("Args", (), {"demos": 10, "demo_noise": 0.0, "steps": 1500, "episodes": 50, "n_action_steps": 8})
+    args = type("Args", (), {"demos": 10, "demo_noise": 0.0, "steps": 1500, "batch_size": 128, "episodes": 50,
+                             "n_action_steps": 8})
     md = tmp_path / "bc.md"
     metaworld_bc.write_table(table, md, args, results)
     md.write_text(md.read_text() + "What the table says.\n")
