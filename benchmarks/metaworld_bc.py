@@ -12,7 +12,7 @@ already complete, so the grid can be stopped and continued. Finished evaluations
 one row each, into --results (docs/benchmarks/metaworld_bc.json), which a later session's
 run also skips: the grid can be finished over several sessions. The table in
 docs/benchmarks/metaworld_bc.md is rebuilt from the rows of today's recipe (demos and their
-recording noise, training steps, episodes, state layout and shift); text below its notes marker
+recording noise, training steps and batch, episodes, state layout and shift); text below its notes marker
 is kept. Beside the decoders stand two references: the plain-MLP policy the issue measured
 (`mlp_baseline`) and the scripted expert that made the demonstrations (`scripted_expert`, the
 ceiling), on the same evaluation layouts.
@@ -43,9 +43,9 @@ LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=
           ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
           ("mlp_baseline", "ode", 1): "MLP ref. K=1", ("scripted_expert", "expert", 1): "expert"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
-# Every run trained before session 14 used 5000 steps of batch 128; it neither recorded its batch in
-# the results nor put its budget in its directory name. Other budgets do both.
-LEGACY_BUDGET = {"train_steps": 5000, "batch_size": 128}
+# Every run trained before session 14 used batch 128: its rows lack a batch, and its directory name
+# its budget. A run with another batch names its budget, so as not to reuse the directory of one of them.
+LEGACY_BATCH = 128
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 
 
@@ -61,8 +61,7 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
         return                          # measured in an earlier session: kept in --results
     tag = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
-    if decoder not in ("mlp_baseline", "scripted_expert") and \
-            {"train_steps": args.steps, "batch_size": args.batch_size} != LEGACY_BUDGET:   # the references': fixed
+    if decoder not in ("mlp_baseline", "scripted_expert") and args.batch_size != LEGACY_BATCH:  # theirs: fixed
         tag += f"_{args.steps}x{args.batch_size}"
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{tag}_{decoder}"  # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
@@ -152,7 +151,7 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
         return tuple(str(r.get(k)) for k in ROW_KEY)
 
     def dated(r):                       # a trained row from before batch sizes were recorded: batch 128
-        return {"batch_size": LEGACY_BUDGET["batch_size"], **r} if "train_steps" in r else r
+        return {"batch_size": LEGACY_BATCH, **r} if "train_steps" in r else r
 
     kept = {key(r): r for r in map(dated, json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({key(r): r for r in map(dated, rows)})
@@ -204,8 +203,8 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
     text = ("Success rate in % (mean ± std over seeds; the number of seeds in parentheses). "
             f"{args.demos} demonstrations per task"
             + (f" (recorded with noise of std {args.demo_noise:g} on the executed actions)" if args.demo_noise else "")
-            + f", {args.steps} training steps of batch {args.batch_size}, the first {args.n_action_steps} actions of each chunk executed "
-            f"before re-planning (the MLP reference: {MLP_N_ACTION_STEPS}), "
+            + f", {args.steps} training steps of batch {args.batch_size}, the first {args.n_action_steps} actions "
+            f"of each chunk executed before re-planning (the MLP reference: {MLP_N_ACTION_STEPS}), "
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations (seed s: "
             f"demonstrations from layouts s·1000 + k, evaluation on 1 000 000 + s·1000 + j); "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
@@ -230,7 +229,8 @@ def main(argv=None) -> None:
                    help="std of the noise on the expert's executed actions while recording (DART; the table "
                         "keeps one value)")
     p.add_argument("--steps", type=int, default=5000, help="training steps (the main job trains 1500)")
-    p.add_argument("--batch-size", type=int, default=128, help="training batch (the MLP reference: its own 256)")
+    p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size,
+                   help="training batch (the MLP reference: its own 256)")
     p.add_argument("--n-action-steps", type=int, default=TrainConfig.n_action_steps,
                    help="actions executed from each chunk before re-planning (evaluation only: a trained run "
                         "is re-evaluated, not retrained, for another value)")

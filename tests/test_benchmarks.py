@@ -157,7 +157,7 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
     assert [c[c.index("--output") + 1].rsplit("/", 1)[-1] for c in calls] == ["eval_ode_k1_n4.json", "eval_ode_k2_n4.json"]
     assert all(c[3] == "eval" and c[c.index("--n-action-steps") + 1] == "4" for c in calls), "no retraining"
 
-    # Another training budget trains a policy of its own, beside the runs made with 5000 steps of 128.
+    # Another batch trains a policy of its own, beside the runs made with 128.
     calls.clear()
     args.steps, args.batch_size, args.demos = 2500, 256, 10
     metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
