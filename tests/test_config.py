@@ -1,10 +1,12 @@
 """DecoderConfig: GO-1 names and defaults, validation naming the field, GO-1 import, JSON."""
 
+import json
 import types
 
 import pytest
 
 from action_decoder import DecoderConfig
+from action_decoder.config import CONFIG_FORMAT_VERSION
 
 
 def test_go1_defaults():
@@ -12,6 +14,7 @@ def test_go1_defaults():
     assert (c.decoder_type, c.num_train_timesteps, c.beta_schedule, c.prediction_type) == (
         "DDPM", 1000, "squaredcos_cap_v2", "sample")
     assert c.flow_sde_use is False and c.default_sampler == "ode"
+    assert (c.num_inference_timesteps, c.flow_sde_num_steps) == (10, 10)
     assert DecoderConfig(decoder_type="flow_matching", flow_sde_use=True).default_sampler == "sde"
 
 
@@ -19,6 +22,7 @@ def test_go1_defaults():
     ({"decoder_type": "unknown"}, "decoder_type"),
     ({"prediction_type": "v"}, "prediction_type"),
     ({"num_inference_timesteps": -1}, "num_inference_timesteps"),
+    ({"flow_sde_num_steps": 0}, "flow_sde_num_steps"),
     ({"num_train_timesteps": 0}, "num_train_timesteps"),
     ({"beta_schedule": "cosine"}, "beta_schedule"),
     ({"flow_sde_mode": "wild"}, "flow_sde_mode"),
@@ -63,3 +67,19 @@ def test_json_round_trip(tmp_path):
     assert DecoderConfig.from_json(path) == c
     with pytest.raises(ValueError, match="unknown field"):
         DecoderConfig.from_dict({**c.to_dict(), "bogus": 1})
+
+
+def test_json_carries_every_field_and_a_format_version(tmp_path):
+    path = tmp_path / "config.json"
+    DecoderConfig(decoder_type="mean_flow", flow_prediction="sample").to_json(path)
+    saved = json.loads(path.read_text())
+    assert saved["format_version"] == CONFIG_FORMAT_VERSION and set(DecoderConfig().to_dict()) < set(saved)
+    for field in ("decoder_type", "flow_prediction", "format_version"):
+        path.write_text(json.dumps({k: v for k, v in saved.items() if k != field}))
+        with pytest.raises(ValueError, match=rf"config: .*missing field\(s\) \['{field}'\]; expected every field"):
+            DecoderConfig.from_json(path)
+    # User code keeps the defaults of DecoderConfig(...): from_dict reads partial dicts.
+    partial = {"decoder_type": "mean_flow", "format_version": CONFIG_FORMAT_VERSION}
+    assert DecoderConfig.from_dict(partial) == DecoderConfig(decoder_type="mean_flow")
+    with pytest.raises(ValueError, match=rf"expected format_version {CONFIG_FORMAT_VERSION}, got 1"):
+        DecoderConfig.from_dict({**partial, "format_version": 1})

@@ -1,16 +1,23 @@
 """ActionDecoderPolicy: training and sampling for every decoder, conditioning, runtime
 sampler choice, save/load, call counts, validation."""
 
+import dataclasses
+import json
 import warnings
 
 import pytest
 import torch
 
 from action_decoder import ActionDecoderPolicy, DecoderConfig, PolicyOutput
+from action_decoder.config import CONFIG_FORMAT_VERSION, SDE_MIN_STEPS
 from action_decoder.expert import ActionExpert
+from action_decoder.oracles import Gaussian
+from action_decoder.rl.sde_policy import finetune_policy
+from action_decoder.train import task_context
 
 SMALL = dict(state_dim=5, action_dim=3, action_chunk_size=8, n_action_steps=4, hidden_size=32,
-             num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2, num_inference_timesteps=4)
+             num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2, num_inference_timesteps=4,
+             flow_sde_num_steps=4)
 STATS = {"state": {"mean": [1.0] * 5, "std": [2.0] * 5, "min": [-3.0] * 5, "max": [5.0] * 5},
          "actions": {"mean": [0.5, -0.5, 2.0], "std": [0.1, 0.2, 3.0], "min": [-1.0] * 3, "max": [1.0] * 3}}
 
@@ -128,19 +135,31 @@ def test_save_load_identical_actions(tmp_path, decoder_type):
     assert torch.equal(loaded.normalizers["actions"].std, torch.tensor([0.1, 0.2, 3.0]))
 
 
-def test_sample_head_survives_save_load_and_older_checkpoints_keep_velocity(tmp_path):
-    import json
+def test_sample_head_survives_save_load(tmp_path):
     policy = make("mean_flow", flow_prediction="sample").eval()
     policy.save_pretrained(tmp_path / "new")
     b = batch(actions=False)
     a = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(5))
     loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "new").eval()
     assert torch.equal(a, loaded.predict_action_chunk(b, generator=torch.Generator().manual_seed(5)))
-    # A checkpoint written before the field existed has a velocity head.
-    cfg = json.loads((tmp_path / "new" / "config.json").read_text())
-    del cfg["flow_prediction"]
-    (tmp_path / "new" / "config.json").write_text(json.dumps(cfg))
-    assert ActionDecoderPolicy.from_pretrained(tmp_path / "new").config.flow_prediction == "velocity"
+
+
+@pytest.mark.parametrize("field", ["decoder_type", "flow_prediction", "flow_sde_num_steps", "format_version"])
+def test_checkpoint_missing_a_field_is_refused_not_defaulted(tmp_path, field):
+    # A config.json without decoder_type loaded as DDPM, one without flow_prediction as a velocity
+    # head: the same weights then act differently. Every field and the format version are required.
+    make("mean_flow", flow_prediction="sample").save_pretrained(tmp_path / "c")
+    path = tmp_path / "c" / "config.json"
+    saved = json.loads(path.read_text())
+    assert saved["format_version"] == CONFIG_FORMAT_VERSION
+    assert set(saved) == {f.name for f in dataclasses.fields(DecoderConfig)} | {"format_version"}
+    del saved[field]
+    path.write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match=rf"missing field\(s\) \['{field}'\].*format_version {CONFIG_FORMAT_VERSION}"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "c")
+    path.write_text(json.dumps({**saved, field: None, "format_version": CONFIG_FORMAT_VERSION + 1}))
+    with pytest.raises(ValueError, match=rf"expected format_version {CONFIG_FORMAT_VERSION}, got {CONFIG_FORMAT_VERSION + 1}"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "c")
 
 
 def test_checkpoint_errors(tmp_path):
@@ -280,3 +299,92 @@ def test_bad_batches_name_the_key(bad, key):
         policy({**batch(), **bad})
     with pytest.raises(ValueError, match=r"batch\['actions'\]: missing"):
         policy(batch(actions=False))
+
+
+@pytest.mark.parametrize("mode", ["churn", "explore"])
+def test_meanflow_sde_takes_its_own_steps_not_the_one_step_of_meanflow(mode):
+    # A MeanFlow config samples its ODE in 1 step; the SDE used to take that one Euler–Maruyama
+    # step from noise too (std 0.74 under churn, 3.3 under explore for this target of std 0.4).
+    oracle = Gaussian(torch.zeros(8, 3), 0.4)
+    kw = {k: v for k, v in SMALL.items() if k != "flow_sde_num_steps"}
+    policy = ActionDecoderPolicy(DecoderConfig(**{**kw, "decoder_type": "mean_flow", "num_inference_timesteps": 1,
+                                                  "flow_sde_mode": mode}), STATS).eval()
+    assert policy.config.flow_sde_num_steps == 10 >= SDE_MIN_STEPS
+    b = batch(500, actions=False)
+    with pytest.MonkeyPatch.context() as mp, warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mp.setattr(ActionExpert, "forward", lambda self, x, t, r, *a, **k: oracle.avg_velocity(x, t, r))
+        sde = policy.sample(b, sampler="sde", generator=torch.Generator().manual_seed(0))
+        ode = policy.sample(b, sampler="ode", generator=torch.Generator().manual_seed(0))
+    std = [float(policy.normalizers["actions"].normalize(o.actions).std()) for o in (sde, ode)]
+    assert sde.chain.shape == (500, 11, 8, 3) and 0.32 < std[0] < 0.42   # churn 0.34, explore 0.38 at K = 10
+    assert abs(std[1] - 0.4) < 0.01                                      # MeanFlow's exact 1-step jump
+
+
+def test_sde_below_the_minimum_steps_warns_once():
+    policy = make("flow_matching").eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        policy.sample(batch(actions=False), sampler="sde", steps=SDE_MIN_STEPS)
+        policy.sample(batch(actions=False), sampler="ode", steps=1)
+    with pytest.warns(UserWarning, match=rf"steps: the SDE sampler with 1 step.*at least {SDE_MIN_STEPS}"):
+        policy.sample(batch(actions=False), sampler="sde", steps=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        policy.sample(batch(actions=False), sampler="sde", steps=2)
+    with pytest.raises(ValueError, match=r"steps: expected a positive integer, got 0"):
+        policy.sample(batch(actions=False), steps=0)
+
+
+def test_finetuned_checkpoint_samples_its_sde_with_its_k(tmp_path):
+    bc = make("mean_flow", num_inference_timesteps=1, flow_sde_num_steps=10)
+    finetune_policy(bc, 0.5, True, 6).save_pretrained(tmp_path / "ft")
+    ft = ActionDecoderPolicy.from_pretrained(tmp_path / "ft").eval()
+    assert ft.config.flow_sde_use and ft.sample(batch(actions=False)).chain.shape[1] == 7
+
+
+@pytest.mark.parametrize("kwargs", [{"sampler": "sde"}, {"return_logprob": True}, {"sampler": "ode", "steps": 3}])
+def test_sampling_arguments_in_train_mode_raise(kwargs):
+    policy = make("flow_matching").train()
+    with pytest.raises(ValueError, match=rf"{next(iter(kwargs))}.*train\(\) mode.*policy.eval\(\)"):
+        policy(batch(), **kwargs)
+    assert policy(batch()).loss.dim() == 0
+
+
+def test_select_action_replans_when_the_batch_size_changes():
+    policy = make("flow_matching").eval()
+    calls = []
+    sample = policy.sample
+    policy.sample = lambda *a, **k: calls.append(1) or sample(*a, **k)
+    assert policy.select_action(batch(4, actions=False)).shape == (4, 3)
+    one = batch(1, seed=3, actions=False)
+    action = policy.select_action(one, generator=torch.Generator().manual_seed(7))
+    fresh = sample(one, generator=torch.Generator().manual_seed(7)).actions[:, 0]
+    assert len(calls) == 2 and torch.equal(action, fresh)
+    assert policy.select_action(one).shape == (1, 3) and len(calls) == 2     # the new queue is used
+
+
+@pytest.mark.parametrize("shape", [(6, 4, 3), (5, 8, 3), (6, 8, 2), (8, 3)])
+def test_noise_of_the_wrong_shape_is_refused(shape):
+    policy = make("flow_matching").eval()
+    with pytest.raises(ValueError, match=r"noise: expected a floating-point tensor of shape \[6, 8, 3\]"):
+        policy.sample(batch(actions=False), noise=torch.zeros(shape))
+    with pytest.raises(ValueError, match="noise: contains NaN"):
+        policy.sample(batch(actions=False), noise=torch.full((6, 8, 3), float("nan")))
+
+
+def test_multitask_checkpoint_refuses_to_sample_without_its_task(tmp_path):
+    tasks = ["reach-v3", "push-v3", "pick-place-v3"]
+    make("flow_matching", context_dim=3, extra={"tasks": tasks}).save_pretrained(tmp_path / "mt")
+    policy = ActionDecoderPolicy.from_pretrained(tmp_path / "mt").eval()
+    b = batch(actions=False)
+    message = r"batch\['context'\]: missing; .*3 tasks \['reach-v3', 'push-v3', 'pick-place-v3'\].*task_context"
+    for call, arg in ((policy.predict_action_chunk, b), (policy.select_action, b), (policy.train(), batch())):
+        with pytest.raises(ValueError, match=message):
+            call(arg)
+    policy.eval()
+    ctx = task_context(torch.full((6,), 1), 3)
+    assert policy.predict_action_chunk({**b, **ctx}).shape == (6, 8, 3)
+    # One task, or a policy with no conditioning path at all, has nothing to be told.
+    make("flow_matching", context_dim=3, extra={"tasks": tasks[:1]}).eval().predict_action_chunk(b)
+    make("flow_matching", extra={"tasks": tasks}).eval().predict_action_chunk(b)

@@ -25,7 +25,7 @@ class EvalConfig:
     sampler: Optional[Literal["ode", "sde", "euler"]] = None
     """None: the checkpoint's configured sampler."""
     steps: int = 0
-    """Sampling steps K (0: the checkpoint's num_inference_timesteps)."""
+    """Sampling steps K (0: the checkpoint's own, flow_sde_num_steps for the SDE, else num_inference_timesteps)."""
     seed: int = 0
     """Evaluation layouts 1 000 000 + seed·1000 + j: never a demonstration's layout."""
     n_action_steps: int = 0
@@ -93,7 +93,7 @@ def run_eval(cfg: EvalConfig) -> dict:
         print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
     summary = {
         "checkpoint": str(cfg.checkpoint), "decoder_type": policy.config.decoder_type,
-        "sampler": policy.resolve_sampler(cfg.sampler), "steps": steps or policy.config.num_inference_timesteps,
+        "sampler": policy.resolve_sampler(cfg.sampler), "steps": policy.resolve_steps(cfg.sampler, steps),
         "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},

@@ -8,6 +8,7 @@ network knows nothing of sampling; the samplers know nothing of the network.
 from __future__ import annotations
 
 import json
+import numbers
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
@@ -17,7 +18,7 @@ from typing import Any, Callable, Mapping, Optional
 import torch
 from torch import Tensor, nn
 
-from .config import DecoderConfig
+from .config import SDE_MIN_STEPS, DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow,
@@ -70,7 +71,7 @@ class ActionDecoderPolicy(nn.Module):
         # The noise schedule is a submodule so that a learnable σ is a policy parameter.
         self.sigma = make_sigma(config)
         self._queue: deque = deque()
-        self._warned_proxy = False
+        self._warned_proxy = self._warned_steps = False
 
     # ------------------------------------------------------------------ batch handling
     def _validate(self, batch: Mapping[str, Any], need_actions: bool) -> None:
@@ -106,6 +107,27 @@ class ActionDecoderPolicy(nn.Module):
             if mask is not None and (not isinstance(mask, Tensor) or list(mask.shape) != list(ctx.shape[:2])):
                 got = list(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
                 raise ValueError(f"batch['context_mask']: expected shape {list(ctx.shape[:2])}, got {got}")
+        tasks = list(cfg.extra.get("tasks") or [])
+        conditioned = cfg.context_dim is not None or cfg.uses_vlm_cache
+        if len(tasks) > 1 and conditioned and batch.get("context") is None and batch.get("vlm_key_values") is None:
+            shown = tasks if len(tasks) <= 10 else tasks[:10] + [f"... ({len(tasks)} in all)"]
+            raise ValueError(f"batch['context']: missing; this policy was trained on {len(tasks)} tasks {shown} "
+                             f"and needs its task token, else it samples unconditioned: pass "
+                             f"batch['context'] = action_decoder.train.task_context(task_index [B], {len(tasks)})"
+                             f"['context'] ([B, 1, {len(tasks)}] one-hot; task_index = position in "
+                             f"config.extra['tasks']) or the batch's vlm_key_values")
+
+    def _check_noise(self, batch: Mapping[str, Any], noise: Tensor) -> None:
+        """`noise` must be one chunk per state row: a shorter chunk would come back short."""
+        self._validate(batch, need_actions=False)
+        cfg = self.config
+        shape = [batch["state"].shape[0], cfg.action_chunk_size, cfg.action_dim]
+        if not isinstance(noise, Tensor) or not noise.is_floating_point() or list(noise.shape) != shape:
+            got = f"{list(noise.shape)} {noise.dtype}" if isinstance(noise, Tensor) else type(noise).__name__
+            raise ValueError(f"noise: expected a floating-point tensor of shape {shape} (batch, action_chunk_size, "
+                             f"action_dim), got {got}")
+        if not torch.isfinite(noise).all():
+            raise ValueError(f"noise: contains NaN or Inf (shape {shape})")
 
     def _prepare(self, batch: Mapping[str, Any]) -> dict:
         """Normalised state, ctrl_freq and the conditioning prefix (built once)."""
@@ -185,6 +207,24 @@ class ActionDecoderPolicy(nn.Module):
             self._warned_proxy = True
         return chosen
 
+    def resolve_steps(self, sampler: Optional[str], steps: Optional[int] = None) -> int:
+        """The step count `sample` uses: `steps`, else `flow_sde_num_steps` for the SDE and
+        `num_inference_timesteps` for the others. The SDE has its own count because MeanFlow's
+        K = 1 would make it one Euler–Maruyama step from noise (std 0.74 or 3.3 for a target of
+        std 0.4); below `SDE_MIN_STEPS` it warns once, as an explicit K may be a chosen trade-off."""
+        chosen = self.resolve_sampler(sampler)
+        if steps is None:
+            steps = self.config.flow_sde_num_steps if chosen == "sde" else self.config.num_inference_timesteps
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
+            raise ValueError(f"steps: expected a positive integer, got {steps!r}")
+        if chosen == "sde" and steps < SDE_MIN_STEPS and not self._warned_steps:
+            warnings.warn(f"steps: the SDE sampler with {steps} step(s) leaves noise it injects unremoved (a Gaussian "
+                          f"of std 0.4 comes out with std 0.74 (churn) or 3.3 (explore) at K = 1, 0.55 (explore) "
+                          f"at K = 2); use at least {SDE_MIN_STEPS} (flow_sde_num_steps, default 10)",
+                          UserWarning, stacklevel=3)
+            self._warned_steps = True
+        return int(steps)
+
     @torch.no_grad()
     def predict_action_chunk(self, batch: Mapping[str, Any], sampler: Optional[str] = None,
                              steps: Optional[int] = None, return_logprob: Optional[bool] = None,
@@ -204,12 +244,14 @@ class ActionDecoderPolicy(nn.Module):
         """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable."""
         cfg = self.config
         chosen = self.resolve_sampler(sampler)
+        steps = self.resolve_steps(chosen, steps)
+        if noise is not None:
+            self._check_noise(batch, noise)
         want_lp = (cfg.flow_sde_return_logprob and chosen == "sde") if return_logprob is None \
             else bool(return_logprob)
         if want_lp and chosen != "sde":
             raise ValueError(f"return_logprob: log-probs come from the SDE sampler; got sampler={chosen!r} "
                              f"(deterministic samplers have no density)")
-        steps = cfg.num_inference_timesteps if steps is None else steps
         bound = self.bind(batch)
         param = next(self.model.parameters())
         if noise is None:
@@ -241,15 +283,31 @@ class ActionDecoderPolicy(nn.Module):
 
     def forward(self, batch: Mapping[str, Any], sampler: Optional[str] = None, return_logprob: Optional[bool] = None,
                 steps: Optional[int] = None, generator: Optional[torch.Generator] = None) -> PolicyOutput:
-        """train(): the loss of `batch` (needs "actions"); eval(): a sampled chunk."""
+        """train(): the loss of `batch` (needs "actions"); eval(): a sampled chunk.
+
+        Sampling arguments in train() mode raise rather than being dropped for a loss."""
         if self.training:
+            given = {k: v for k, v in (("sampler", sampler), ("return_logprob", return_logprob), ("steps", steps))
+                     if v is not None}
+            if given:
+                raise ValueError(f"{', '.join(given)}: sampling arguments, got {given} while the policy is in "
+                                 f"train() mode, where forward returns the loss; call policy.eval() first, or "
+                                 f"policy.sample(batch, ...) to sample with gradients")
             return self.compute_loss(batch, generator)
         with torch.no_grad():
             return self.sample(batch, sampler, steps, return_logprob, generator)
 
     @torch.no_grad()
     def select_action(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> Tensor:
-        """One action [B, D]; a new chunk is sampled when the queue of n_action_steps runs out."""
+        """One action [B, D]; a new chunk is sampled when the queue of n_action_steps runs out.
+
+        A state whose batch size differs from the queued chunk's re-plans (as after `reset()`):
+        the queued rows belong to other environments and cannot be matched to the new ones, and
+        a fresh chunk for the batch at hand is what a caller that changed its batch wants."""
+        if self._queue:
+            self._validate(batch, need_actions=False)
+            if self._queue[0].shape[0] != batch["state"].shape[0]:
+                self._queue.clear()
         if not self._queue:
             chunk = self.sample(batch, return_logprob=False, generator=generator).actions
             self._queue.extend(chunk[:, : self.config.n_action_steps].transpose(0, 1))

@@ -24,7 +24,8 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
                     schedule: str = "explore", extra: Optional[dict] = None) -> ActionDecoderPolicy:
     """A copy of a BC policy that samples with an SDE: σ(t) = a·√((1−t)/t) ("explore") or a
     ("fixed"), a = `sigma`, times a learnable multiplier (starting at exactly 1) when
-    `learn_sigma`; K = `steps`.
+    `learn_sigma`; K = `steps`, for the SDE (`flow_sde_num_steps`) and the ODE alike
+    (`num_inference_timesteps`: fine-tuning evaluates its deterministic policy at that K too).
 
     The saved config has flow_sde_use=True so `action-decoder eval` samples the chain that was
     optimised by default (`--sampler ode` gives the deterministic policy).
@@ -34,7 +35,7 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
                          "sampler has per-step densities); this checkpoint is decoder_type='DDPM'")
     cfg = replace(bc.config, flow_sde_use=True, flow_sde_mode=schedule, flow_sde_s_churn=float(sigma),
                   flow_sde_learn_sigma=bool(learn_sigma), flow_sde_sigma_init=1.0,
-                  num_inference_timesteps=int(steps), flow_sde_return_logprob=False,
+                  num_inference_timesteps=int(steps), flow_sde_num_steps=int(steps), flow_sde_return_logprob=False,
                   extra={**bc.config.extra, **(extra or {})})
     policy = ActionDecoderPolicy(cfg)
     weights = {k: v for k, v in bc.state_dict().items() if not k.startswith("sigma.")}
