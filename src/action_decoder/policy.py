@@ -107,7 +107,8 @@ class ActionDecoderPolicy(nn.Module):
             if mask is not None and (not isinstance(mask, Tensor) or list(mask.shape) != list(ctx.shape[:2])):
                 got = list(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
                 raise ValueError(f"batch['context_mask']: expected shape {list(ctx.shape[:2])}, got {got}")
-        tasks = list(cfg.extra.get("tasks") or [])
+        tasks = cfg.extra.get("tasks")
+        tasks = list(tasks) if isinstance(tasks, (list, tuple)) else []
         conditioned = cfg.context_dim is not None or cfg.uses_vlm_cache
         if len(tasks) > 1 and conditioned and batch.get("context") is None and batch.get("vlm_key_values") is None:
             shown = tasks if len(tasks) <= 10 else tasks[:10] + [f"... ({len(tasks)} in all)"]
