@@ -51,9 +51,9 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     plan_indices[b]): an episode's actions do not depend on the other episodes sharing its batch,
     so results do not depend on `num_envs` (up to float rounding of batched matmuls, ~1e-7).
     The SDE draws every step's ε from one generator for the whole batch, so with `sampler="sde"`
-    the rows are sampled one at a time (about 3-4x the network time of one batched call on CPU);
-    the other samplers take each row's noise in one batched call. Without those keys the whole
-    batch draws from `generator`.
+    the rows are sampled one at a time: for 10 rows at K = 10 on one CPU core, 1.46 s against
+    0.23 s batched. The other samplers take each row's noise in one batched call (no extra cost).
+    Without those keys the whole batch draws from `generator`.
     """
     device = next(policy.parameters()).device
     cfg, base = policy.config, generator.initial_seed()
@@ -148,7 +148,7 @@ def write_summary(summary: dict, plot_results: Optional[list], out: Path) -> Opt
     same name, and one line on stderr says so; if that fails too, one line says nothing was saved.
     """
     tried = []
-    for path in dict.fromkeys([out, Path.cwd() / out.name]):     # the fallback, unless it is `out` itself
+    for path in dict.fromkeys([out.absolute(), Path.cwd() / out.name]):     # the fallback, unless it is `out` itself
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(summary, indent=1))
