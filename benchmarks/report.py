@@ -106,7 +106,7 @@ def render(results: dict, plot_name: str | None) -> str:
                   (f"Read from eval JSON files under `{q['dir']}`; latency is the median per-chunk "
                    "time at B = 1 of the checkpoint named in the JSON (or its `latency_ms`)."
                    if q["dir"] else
-                   "Not measured in this run: pass `--quality-dir DIR` with the `eval.json` files written by "
+                   "Not measured in this run: pass `--quality-dir DIR` with the summaries (`eval_*.json`) written by "
                    "`action-decoder eval` (any depth; keys `decoder_type`, `sampler`, `steps`, "
                    "`success_rate`, `checkpoint`, optional `latency_ms`)."), ""]
         rows = [[r["decoder"], r["sampler"], r["steps"],

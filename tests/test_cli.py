@@ -46,9 +46,10 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     last = res.stdout.strip().splitlines()[-1]
     assert last.startswith("success_rate=") and 0.0 <= float(last.split("=")[1]) <= 1.0
     assert "episode 2/2" in res.stdout
-    summary = json.loads((out / "final" / "eval.json").read_text())
+    name = out / "final" / f"eval_sde_k3_n{policy.config.n_action_steps}_seed0"     # named by its settings
+    summary = json.loads(name.with_suffix(".json").read_text())
     assert summary["sampler"] == "sde" and summary["steps"] == 3 and len(summary["results"][0]["successes"]) == 2
-    assert (out / "final" / "eval.png").is_file()
+    assert name.with_suffix(".png").is_file()
 
 
 def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):

@@ -1,0 +1,115 @@
+"""Closed-loop evaluation of a saved policy: batching independence, output naming, unwritable checkpoints."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from action_decoder import ActionDecoderPolicy, DecoderConfig
+from action_decoder.envs import evaluate
+from action_decoder.evaluate import EvalConfig, make_policy_fn, run_eval
+
+
+def tiny_policy(decoder_type="flow_matching", **kw) -> ActionDecoderPolicy:
+    torch.manual_seed(0)
+    cfg = DecoderConfig(decoder_type=decoder_type, state_dim=39, action_dim=4, action_chunk_size=8, hidden_size=32,
+                        num_hidden_layers=1, n_action_steps=8, num_inference_timesteps=2,
+                        extra={"tasks": ["reach-v3"]}, **kw)
+    return ActionDecoderPolicy(cfg).eval()
+
+
+def test_policy_fn_learns_each_rows_episode_and_plan():
+    calls = []
+
+    def fn(states, task_index, **keys):         # **kwargs: given both keys
+        calls.append({k: v.tolist() for k, v in keys.items()})
+        return np.zeros((len(states), 4, 4))
+
+    res = evaluate(fn, "metaworld/reach", episodes=3, seed=2, n_action_steps=4, max_steps=8, num_envs=2)
+    assert calls == [{"episode_seeds": res["seeds"][:2], "plan_indices": [0, 0]},
+                     {"episode_seeds": res["seeds"][:2], "plan_indices": [1, 1]},
+                     {"episode_seeds": res["seeds"][2:], "plan_indices": [0]},
+                     {"episode_seeds": res["seeds"][2:], "plan_indices": [1]}]
+
+
+@pytest.mark.parametrize("sampler", ["ode", "sde"])
+def test_episodes_do_not_depend_on_num_envs(sampler):
+    """Each episode's noise comes from its own seed: 1, 3 or 10 envs in lockstep run the same episodes."""
+    policy = tiny_policy()
+    runs = {n: evaluate(make_policy_fn(policy, 1, sampler, 2, torch.Generator().manual_seed(7)), "metaworld/reach",
+                        episodes=5, seed=3, n_action_steps=4, max_steps=12, num_envs=n, record=True)
+            for n in (1, 3, 10)}
+    base = runs[1]
+    hands = [np.asarray(t["hand"]) for t in base["trajectories"]]     # [13, 3] per episode
+    assert all(np.abs(np.diff(h, axis=0)).max() > 1e-3 for h in hands), "the hand should move"
+    assert not np.allclose(hands[0][1:] - hands[0][0], hands[1][1:] - hands[1][0]), "episodes draw different noise"
+    for n in (3, 10):
+        assert runs[n]["successes"] == base["successes"] and runs[n]["lengths"] == base["lengths"]
+        for a, b in zip(runs[n]["trajectories"], base["trajectories"]):
+            # Batched matmuls round differently (~1e-7): the same path, not bit for bit.
+            np.testing.assert_allclose(a["hand"], b["hand"], atol=1e-5, err_msg=f"num_envs={n}")
+        np.testing.assert_allclose(runs[n]["returns"], base["returns"], rtol=1e-4)
+
+
+def fake_evaluate(policy_fn, task, episodes, seed, n_action_steps, num_envs, task_index, progress, record, **kw):
+    """Episodes 0, 2 succeed; they finish in reverse order, as lockstep envs can finish them."""
+    successes = [i % 2 == 0 for i in range(episodes)]
+    for done, ep in enumerate(reversed(range(episodes)), 1):
+        progress(done, episodes, ep, successes[ep])
+    extra = {"trajectories": [{"hand": [[0, 0, 0], [0.1, 0, 0]], "goal": [0.1, 0, 0]}] * episodes} if record else {}
+    return {**extra, "task": "reach-v3", "success_rate": float(np.mean(successes)), "successes": successes,
+            "lengths": [1] * episodes, "returns": [0.0] * episodes, "seeds": list(range(episodes)),
+            "env_steps": episodes, "wall_time_s": 0.0}
+
+
+@pytest.fixture
+def checkpoint(tmp_path, monkeypatch):
+    monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate)
+    tiny_policy().save_pretrained(tmp_path / "final")
+    monkeypatch.chdir(tmp_path)
+    return tmp_path / "final"
+
+
+def test_eval_keeps_one_summary_per_setting_and_numbers_lines_by_episode(checkpoint, capsys):
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=3, plot=True))          # as training's own evaluation
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if " episode " in ln]
+    assert [ln.split(": ")[0] for ln in lines] == [f"[reach-v3] episode {i}/3" for i in (3, 2, 1)]
+    assert [ln.split(": ")[1].split()[0] for ln in lines] == ["success", "failure", "success"]
+    assert "1/3 done" in lines[0] and "3/3 done" in lines[2]
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=3, sampler="sde", steps=5, seed=1, n_action_steps=4))
+    first, second = checkpoint / "eval_ode_k2_n8_seed0.json", checkpoint / "eval_sde_k5_n4_seed1.json"
+    assert json.loads(first.read_text())["sampler"] == "ode" and first.with_suffix(".png").is_file()
+    assert json.loads(second.read_text())["steps"] == 5
+    assert sorted(p.name for p in checkpoint.glob("eval*")) == sorted([first.name, first.with_suffix(".png").name,
+                                                                        second.name])
+
+
+def test_eval_in_a_read_only_checkpoint_still_reports(checkpoint, capsys, monkeypatch):
+    checkpoint.chmod(0o555)            # root ignores the mode: the write below raises as it would for a user
+    real_write = Path.write_text
+
+    def write_text(self, *args, **kw):
+        if self.parent == checkpoint:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_write(self, *args, **kw)
+
+    monkeypatch.setattr(Path, "write_text", write_text)
+    summary = run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2))
+    out, err = capsys.readouterr()
+    assert out.strip().splitlines()[-1] == "success_rate=0.5000" and summary["success_rate"] == 0.5
+    fallback = Path.cwd() / "eval_ode_k2_n8_seed0.json"
+    assert json.loads(fallback.read_text())["checkpoint"] == str(checkpoint)
+    assert err.strip().splitlines() == [f"action-decoder: warning: cannot write {checkpoint / fallback.name} "
+                                        f"(Permission denied); wrote {fallback} instead"]
+
+    def deny(self, *args, **kw):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "write_text", deny)         # the current directory cannot be written either
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2))
+    out, err = capsys.readouterr()
+    assert out.strip().splitlines()[-1] == "success_rate=0.5000"
+    assert len(err.strip().splitlines()) == 1 and "was not saved" in err and str(checkpoint) in err
+    checkpoint.chmod(0o755)
