@@ -229,8 +229,7 @@ def test_grid_built_under_inference_mode_serves_differentiable_calls():
     noise = torch.randn(5, 4, 2)
     with torch.inference_mode():
         sample_sde(velocity, noise, 7, 0.5, return_logprob=True)
-        sample_ode_ = sample_sde(velocity, noise, 7, 0.5)
-    assert sample_ode_.grid.is_inference()          # made under inference mode: the caller's own copy
+        sample_sde(velocity, noise, 7, 0.5)
     sigma = LearnableSigma(ExploringSigma(0.7), init=0.5)
     res = sample_sde(velocity, noise, 7, sigma, return_logprob=True, logprob="full")
     res.log_prob.sum().backward()

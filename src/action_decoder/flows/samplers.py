@@ -105,13 +105,11 @@ def _as_sigma(sigma) -> nn.Module:
     return sigma
 
 
-def _step_coefficients(sigma, grid: Tensor, clip_t: float, need_density: bool):
-    """Per-step scalars of the Euler–Maruyama update `mean = a·x + b·v`, `std`.
+def _step_coefficients(sigma, grid: Tensor, clip_t: float):
+    """Per-step scalars of the Euler–Maruyama update `mean = a·x + b·v`, `std`, and σ [K].
 
     ṽ = v + ½σ²·(t·v − x)/(1 − t) gives mean = x + ṽ·Δt = (1 − c·Δt)·x + Δt·(1 + c·t)·v
     with c = ½σ²/max(1 − t, clip_t) computed as one expression, never σ²·score.
-    With `need_density`, σ must be positive and finite on every step (a step of std 0 has no
-    density): checked with one host sync per call, before the loop.
     """
     t, dt = grid[:-1], grid.diff()                                   # [K], [K]
     sig = sigma(t)
@@ -119,14 +117,21 @@ def _step_coefficients(sigma, grid: Tensor, clip_t: float, need_density: bool):
         raise ValueError(f"sigma: expected σ(t) of shape {tuple(t.shape)} for t of that shape, "
                          f"got {tuple(sig.shape) if isinstance(sig, Tensor) else type(sig).__name__}")
     sig = sig.to(grid.dtype)
-    if need_density:
-        bad = ~(torch.isfinite(sig) & (sig > 0))                     # [K]
-        if bool(bad.any()):
-            k = int(bad.nonzero()[0])
-            raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
-                             f"got σ({float(t[k]):.6g}) = {float(sig[k])!r} (step {k} of {len(t)})")
     c = 0.5 * sig.square() / (1 - t).clamp_min(clip_t)
-    return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt()             # a, b, std: each [K]
+    return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt(), sig        # a, b, std, σ: each [K]
+
+
+def _check_density_sigma(sig: Tensor, grid: Tensor) -> None:
+    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step.
+
+    One host sync per call, made after the loop's work is queued, so that on a GPU it waits
+    only for results the caller reads anyway.
+    """
+    bad = ~(torch.isfinite(sig) & (sig > 0))                             # [K]
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0])
+        raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
+                         f"got σ({float(grid[k]):.6g}) = {float(sig[k])!r} (step {k} of {len(sig)})")
 
 
 def _gaussian_log_prob(z: Tensor, std: Tensor, reduce: str) -> Tensor:
@@ -162,7 +167,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     With `return_logprob`, `step_log_probs[:, k]` is log N(x_{k+1}; mean_k, std_k² I) of the
     returned chain, computed from the chain itself: `chain_log_prob` with the same velocity,
     σ and grid gives the same values (PPO ratio 1). σ must then be positive and finite on
-    every step (ValueError otherwise). `logprob` picks only where the gradient goes:
+    every step (ValueError, checked once per call). `logprob` picks only where the gradient goes:
       "full" — the chain is data (score-function / PPO form): each step's network call sees
                the detached state x_k, so gradients reach the velocity's parameters through
                the means and σ through the stds, exactly as for `chain_log_prob` of the
@@ -179,7 +184,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
     dtype, st = _setup(noise, steps, grid)
     grid = st.grid
-    a, b, std = _step_coefficients(sigma, grid, clip_t, need_density=return_logprob)
+    a, b, std, sig = _step_coefficients(sigma, grid, clip_t)
     B, K = noise.shape[0], grid.numel() - 1
     eps = torch.randn((B, K, *noise.shape[1:]), generator=generator, device=noise.device,
                       dtype=dtype)
@@ -206,6 +211,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
         result.squash_log_det = log_det if reduce == "none" else (
             log_det.sum((-2, -1)) if reduce == "sum" else log_det.mean((-2, -1)))
     if return_logprob:
+        _check_density_sigma(sig, grid)
         z = (chain[:, 1:].detach() - means_t) / stds.reshape(B, K, 1, 1)     # [B, K, H, D]
         if logprob == "eps":
             z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
@@ -236,10 +242,11 @@ def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tens
     grid = st.grid
     if grid.numel() != K + 1:
         raise ValueError(f"grid: expected {K + 1} points for a chain of {K} steps, got {grid.numel()}")
-    a, b, std = _step_coefficients(sigma, grid, clip_t, need_density=True)
+    a, b, std, sig = _step_coefficients(sigma, grid, clip_t)
     chain = chain.to(dtype)
     means = torch.stack([torch.addcmul(x * a_k, checked_call(velocity, x, t, dtype=dtype, name="velocity"), b_k)
                          for x, t, a_k, b_k in zip(chain[:, :-1].unbind(1), st.starts, a.unbind(), b.unbind())],
                         1)                                            # [B, K, H, D]
+    _check_density_sigma(sig, grid)
     stds = std.expand(B, K)
     return _gaussian_log_prob((chain[:, 1:] - means) / stds.reshape(B, K, 1, 1), stds, reduce)
