@@ -334,7 +334,7 @@ def test_nonpositive_or_nonfinite_sigma_with_log_probs_raises():
     def nan_late(t):
         return torch.where(t > 0.6, torch.full_like(t, float("nan")), torch.full_like(t, 0.5))
 
-    for sigma, value in [(0.0, "0.0"), (-0.3, "-0.3"), (nan_late, "nan")]:
+    for sigma, value in [(0.0, "0 "), (-0.3, "-0.3 "), (nan_late, "nan ")]:
         with pytest.raises(ValueError, match=rf"sigma: expected σ\(t\) > 0 .*got σ\(.*\) = {value}"):
             sample_sde(f, noise, 5, sigma, return_logprob=True)
         res = sample_sde(f, noise, 5, sigma if sigma != nan_late else 0.5)   # sampling alone is fine

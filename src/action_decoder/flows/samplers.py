@@ -106,7 +106,7 @@ def _as_sigma(sigma) -> nn.Module:
 
 
 def _step_coefficients(sigma, grid: Tensor, clip_t: float):
-    """Per-step scalars of the Euler–Maruyama update `mean = a·x + b·v`, `std`, and σ [K].
+    """Per-step scalars of the Euler–Maruyama update `mean = a·x + b·v`, `std`.
 
     ṽ = v + ½σ²·(t·v − x)/(1 − t) gives mean = x + ṽ·Δt = (1 − c·Δt)·x + Δt·(1 + c·t)·v
     with c = ½σ²/max(1 − t, clip_t) computed as one expression, never σ²·score.
@@ -118,20 +118,22 @@ def _step_coefficients(sigma, grid: Tensor, clip_t: float):
                          f"got {tuple(sig.shape) if isinstance(sig, Tensor) else type(sig).__name__}")
     sig = sig.to(grid.dtype)
     c = 0.5 * sig.square() / (1 - t).clamp_min(clip_t)
-    return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt(), sig        # a, b, std, σ: each [K]
+    return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt()             # a, b, std: each [K]
 
 
-def _check_density_sigma(sig: Tensor, grid: Tensor) -> None:
+def _check_density_std(std: Tensor, grid: Tensor) -> None:
     """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step.
 
-    One host sync per call, made after the loop's work is queued, so that on a GPU it waits
-    only for results the caller reads anyway.
+    std_k = σ(t_k)·√Δt_k with Δt_k > 0, so std [K] is checked. One host sync per call, made
+    after the loop's work is queued, so that on a GPU it waits only for results the caller
+    reads anyway.
     """
-    bad = ~(torch.isfinite(sig) & (sig > 0))                             # [K]
+    bad = ~(torch.isfinite(std) & (std > 0))                             # [K]
     if bool(bad.any()):
         k = int(bad.nonzero()[0])
+        sig = float(std[k]) / float(grid[k + 1] - grid[k]) ** 0.5
         raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
-                         f"got σ({float(grid[k]):.6g}) = {float(sig[k])!r} (step {k} of {len(sig)})")
+                         f"got σ({float(grid[k]):.6g}) = {sig:.6g} (step {k} of {len(std)})")
 
 
 def _gaussian_log_prob(z: Tensor, std: Tensor, reduce: str) -> Tensor:
@@ -184,7 +186,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
     dtype, st = _setup(noise, steps, grid)
     grid = st.grid
-    a, b, std, sig = _step_coefficients(sigma, grid, clip_t)
+    a, b, std = _step_coefficients(sigma, grid, clip_t)
     B, K = noise.shape[0], grid.numel() - 1
     eps = torch.randn((B, K, *noise.shape[1:]), generator=generator, device=noise.device,
                       dtype=dtype)
@@ -211,7 +213,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
         result.squash_log_det = log_det if reduce == "none" else (
             log_det.sum((-2, -1)) if reduce == "sum" else log_det.mean((-2, -1)))
     if return_logprob:
-        _check_density_sigma(sig, grid)
+        _check_density_std(std, grid)
         z = (chain[:, 1:].detach() - means_t) / stds.reshape(B, K, 1, 1)     # [B, K, H, D]
         if logprob == "eps":
             z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
@@ -242,11 +244,11 @@ def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tens
     grid = st.grid
     if grid.numel() != K + 1:
         raise ValueError(f"grid: expected {K + 1} points for a chain of {K} steps, got {grid.numel()}")
-    a, b, std, sig = _step_coefficients(sigma, grid, clip_t)
+    a, b, std = _step_coefficients(sigma, grid, clip_t)
     chain = chain.to(dtype)
     means = torch.stack([torch.addcmul(x * a_k, checked_call(velocity, x, t, dtype=dtype, name="velocity"), b_k)
                          for x, t, a_k, b_k in zip(chain[:, :-1].unbind(1), st.starts, a.unbind(), b.unbind())],
                         1)                                            # [B, K, H, D]
-    _check_density_sigma(sig, grid)
+    _check_density_std(std, grid)
     stds = std.expand(B, K)
     return _gaussian_log_prob((chain[:, 1:] - means) / stds.reshape(B, K, 1, 1), stds, reduce)
