@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from action_decoder import (sample_meanflow, sample_ode, time_grid, velocity_from_meanflow,
-                            velocity_from_sample)
+from action_decoder import (FixedSigma, sample_meanflow, sample_ode, sample_sde, time_grid,
+                            velocity_from_meanflow, velocity_from_sample)
 from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
 
 N = 2000
@@ -140,3 +140,29 @@ def test_negative_steps_and_wrong_output_shape(gaussian):
             fn(gaussian.velocity, noise, steps=-1)
     with pytest.raises(ValueError, match="velocity: expected an output"):
         sample_ode(lambda x, t: x[:, :, :1], noise)
+
+
+def test_identity_velocity_error_is_second_order_in_delta(gaussian):
+    z = torch.randn(32, 1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    t = torch.rand(32, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 0.9
+    v = gaussian.velocity(z, t)
+    errs = [(velocity_from_meanflow(gaussian.avg_velocity, "identity", delta=d)(z, t) - v).abs().max()
+            for d in (0.04, 0.02, 0.01)]
+    ratios = [float(errs[i] / errs[i + 1]) for i in range(2)]
+    assert all(3.5 < r < 4.5 for r in ratios), ratios   # halving delta quarters the error
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_identity_velocity_runs_in_the_samplers(gaussian, dtype):
+    g = torch.Generator().manual_seed(7)
+    noise = torch.randn(4000, 1, 3, dtype=torch.float64, generator=g).to(dtype)
+    v_id = velocity_from_meanflow(gaussian.avg_velocity, "identity")
+    # ODE: the same Euler path as the exact velocity's, up to the O(delta²) velocity error.
+    exact = sample_ode(gaussian.velocity, noise, steps=50)
+    assert torch.allclose(sample_ode(v_id, noise, steps=50), exact, atol=1e-4)
+    # SDE (the design's MF-SDE option 2): the Gaussian's mean and std, with finite log-probs.
+    res = sample_sde(v_id, noise, 100, FixedSigma(0.8), generator=g, clip_t=1e-3, return_logprob=True)
+    out = res.actions.double()
+    assert torch.allclose(out.mean(0), gaussian.mean, atol=0.03)
+    assert torch.allclose(out.std(0), torch.full_like(gaussian.mean, gaussian.std), atol=0.03)
+    assert torch.isfinite(res.log_prob).all()

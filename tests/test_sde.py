@@ -210,3 +210,197 @@ def test_bad_arguments():
         chain_log_prob(f, res.chain, 0.5, grid=torch.linspace(0, 1, 4))
     with pytest.raises(ValueError, match="chain"):
         chain_log_prob(f, res.chain[:, 0], 0.5)
+
+
+# ---------------------------------------------------------------- grid cache, log-prob contract
+def _net_velocity(seed=0, width=32):
+    torch.manual_seed(seed)
+    net = nn.Sequential(nn.Linear(3, width), nn.Tanh(), nn.Linear(width, 2))
+
+    def velocity(x, t):
+        return net(torch.cat([x, t.reshape(-1, 1, 1).expand(-1, x.shape[1], 1)], -1))
+    return net, velocity
+
+
+def test_grid_built_under_inference_mode_serves_differentiable_calls():
+    from action_decoder.flows import paths
+    paths._uniform_steps.cache_clear()
+    net, velocity = _net_velocity()
+    noise = torch.randn(5, 4, 2)
+    with torch.inference_mode():
+        sample_sde(velocity, noise, 7, 0.5, return_logprob=True)
+        sample_sde(velocity, noise, 7, 0.5)
+    sigma = LearnableSigma(ExploringSigma(0.7), init=0.5)
+    res = sample_sde(velocity, noise, 7, sigma, return_logprob=True, logprob="full")
+    res.log_prob.sum().backward()
+    assert sigma.log_scale.grad is not None and net[0].weight.grad is not None
+    lp = chain_log_prob(velocity, res.chain.detach(), sigma, grid=None)
+    lp.sum().backward()
+
+
+def test_returned_grid_is_a_copy():
+    seen = []
+
+    def velocity(x, t):
+        seen.append(float(t[0]))
+        return -x
+
+    noise = torch.randn(3, 2, 2)
+    res = sample_sde(velocity, noise, 6, 0.5)
+    res.grid.mul_(0.5)
+    seen.clear()
+    again = sample_sde(velocity, noise, 6, 0.5)
+    assert torch.allclose(torch.tensor(seen), torch.linspace(0, 1, 7)[:-1])
+    assert torch.allclose(again.grid, torch.linspace(0, 1, 7))
+
+
+SDE_MODES = ["churn", "explore", "fixed"]
+
+
+@pytest.mark.parametrize("mode", SDE_MODES)
+@pytest.mark.parametrize("decoder_type", ["flow_matching", "mean_flow"])
+def test_default_config_log_probs_rescore_to_ratio_one(mode, decoder_type):
+    from test_policy import batch, make
+    policy = make(decoder_type, flow_sde_mode=mode, num_inference_timesteps=10).eval()
+    assert policy.config.flow_sde_logprob_sigma_only          # the default: the ε form's gradient
+    b = batch(b=16, actions=False)
+    out = policy(b, sampler="sde", return_logprob=True, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        again = policy.chain_log_prob(b, out.chain, out.grid)
+    assert out.step_log_probs.dtype == torch.float32
+    assert (again - out.step_log_probs).exp().sub(1).abs().max() < 1e-4
+    assert torch.allclose(out.log_prob, out.step_log_probs.sum(1))
+
+
+@pytest.mark.parametrize("name", ["churn", "explore", "fixed-0.8"])
+def test_returned_log_probs_are_the_chain_density_in_both_forms(name):
+    _, velocity = _net_velocity()
+    sigma = SCHEDULES[name]()
+    with torch.no_grad():
+        for form in ("full", "eps"):
+            res = sample_sde(velocity, torch.randn(32, 8, 2), 10, sigma, return_logprob=True, logprob=form,
+                             generator=torch.Generator().manual_seed(1))
+            again = chain_log_prob(velocity, res.chain, sigma, grid=res.grid)
+            assert (again - res.step_log_probs).exp().sub(1).abs().max() < 1e-4, form
+
+
+def test_gradient_contract_of_the_two_forms():
+    net, velocity = _net_velocity()
+    sigma = LearnableSigma(ExploringSigma(0.7), init=0.3)
+    params = list(net.parameters()) + [sigma.log_scale]
+    noise = torch.randn(16, 4, 2)
+
+    def run(form):
+        return sample_sde(velocity, noise, 5, sigma, return_logprob=True, logprob=form,
+                          generator=torch.Generator().manual_seed(0))
+
+    # "full": the chain is data, the gradient is that of re-scoring it (score function / PPO).
+    full = run("full")
+    g_full = torch.autograd.grad(full.log_prob.sum(), params)
+    rescored = chain_log_prob(velocity, full.chain.detach(), sigma, grid=full.grid).sum()
+    g_ref = torch.autograd.grad(rescored, params)
+    assert g_full[0].abs().sum() > 0
+    for a, b in zip(g_full, g_ref):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+    # "eps": the same value, the ε form's gradient: σ only, −Σ ∂log std/∂θ_σ = −K·H·D·B per unit log-scale.
+    eps = run("eps")
+    assert torch.allclose(eps.log_prob, full.log_prob)
+    g_eps = torch.autograd.grad(eps.log_prob.sum(), params, allow_unused=True)
+    assert all(g is None or torch.all(g == 0) for g in g_eps[:-1])
+    assert torch.allclose(g_eps[-1], torch.tensor(-16.0 * 5 * 4 * 2))
+
+
+@pytest.mark.parametrize("sigma_only", [True, False])
+def test_policy_logprob_sigma_only_routes_the_gradient(sigma_only):
+    from test_policy import batch, make
+    policy = make("flow_matching", flow_sde_learn_sigma=True, flow_sde_logprob_sigma_only=sigma_only)
+    b = batch(actions=False)
+    out = policy.sample(b, sampler="sde", return_logprob=True, generator=torch.Generator().manual_seed(0))
+    out.log_prob.sum().backward()
+    net_grad = sum(float(p.grad.abs().sum()) for p in policy.model.parameters() if p.grad is not None)
+    assert float(policy.sigma.log_scale.grad.abs()) > 0
+    assert (net_grad == 0) == sigma_only
+    if not sigma_only:       # the score-function gradient is that of re-scoring the chain
+        policy.zero_grad()
+        policy.chain_log_prob(b, out.chain.detach(), out.grid).sum().backward()
+        again = sum(float(p.grad.abs().sum()) for p in policy.model.parameters() if p.grad is not None)
+        assert again == pytest.approx(net_grad, rel=1e-4)
+
+
+def test_nonpositive_or_nonfinite_sigma_with_log_probs_raises():
+    f = lambda x, t: -x   # noqa: E731
+    noise = torch.randn(2, 3, 1)
+
+    def nan_late(t):
+        return torch.where(t > 0.6, torch.full_like(t, float("nan")), torch.full_like(t, 0.5))
+
+    for sigma, value in [(0.0, "0 "), (-0.3, "-0.3 "), (nan_late, "nan ")]:
+        with pytest.raises(ValueError, match=rf"sigma: expected σ\(t\) > 0 .*got σ\(.*\) = {value}"):
+            sample_sde(f, noise, 5, sigma, return_logprob=True)
+        res = sample_sde(f, noise, 5, sigma if sigma != nan_late else 0.5)   # sampling alone is fine
+        with pytest.raises(ValueError, match="sigma"):
+            chain_log_prob(f, res.chain, sigma, grid=res.grid)
+    with pytest.raises(ValueError, match=r"σ\(0.8\)"):
+        sample_sde(f, noise, 5, nan_late, return_logprob=True)
+    assert torch.allclose(sample_sde(f, noise, 5, 0.0).actions, noise * 0.8 ** 5)   # σ = 0: the ODE
+
+
+@pytest.mark.parametrize("steps", [4, 20])
+def test_exploring_sigma_clamps_at_the_first_interior_grid_point(steps):
+    from test_policy import make
+    a = 0.7
+    res = sample_sde(lambda x, t: -x, torch.randn(2, 1, 1), steps, ExploringSigma(a))
+    # σ(0) = a·√((1 − 0)/(1/K)): std_0 = σ(0)·√(1/K) = a for any K.
+    assert res.stds[0, 0] == pytest.approx(a, rel=1e-5)
+    t = torch.linspace(0, 1, steps + 1)[:-1]
+    sig = ExploringSigma(a)(t)
+    assert sig[0] == pytest.approx(a * math.sqrt(steps), rel=1e-5)
+    assert sig[1] == pytest.approx(a * math.sqrt(steps - 1), rel=1e-5)
+    assert ExploringSigma(a, t_min=0.1)(t)[0] == pytest.approx(a * math.sqrt(10), rel=1e-5)
+    assert ExploringSigma(a)(torch.zeros(1)) == pytest.approx(a)       # one step: clamp at 1
+    assert make_sigma(DecoderConfig(flow_sde_mode="explore", flow_sde_t_min=0.25)).t_min == 0.25
+    # The RL fine-tuning policy ("explore", config built by dataclasses.replace) follows the grid.
+    from action_decoder.rl.sde_policy import finetune_policy
+    policy = finetune_policy(make("flow_matching"), sigma=a, learn_sigma=False, steps=steps)
+    assert policy.sigma(t)[0] == pytest.approx(a * math.sqrt(steps), rel=1e-5)
+
+
+def test_bad_t_min_names_the_field():
+    for bad in (0.0, -0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="flow_sde_t_min"):
+            DecoderConfig(flow_sde_t_min=bad)
+        with pytest.raises(ValueError, match="t_min"):
+            ExploringSigma(0.7, t_min=bad)
+    with pytest.raises(ValueError, match="meanflow_sde_velocity"):
+        DecoderConfig(meanflow_sde_velocity="jvp")
+
+
+def test_meanflow_identity_velocity_from_config_and_at_run_time():
+    from test_policy import batch, make
+    b = batch(b=4, actions=False)
+    noise = torch.randn(4, 8, 3, generator=torch.Generator().manual_seed(0))
+    ident = make("mean_flow", meanflow_sde_velocity="identity").eval()
+    bound = make("mean_flow").eval()
+
+    def run(policy, **kw):
+        return policy.sample(b, sampler="sde", return_logprob=True, noise=noise,
+                             generator=torch.Generator().manual_seed(1), **kw)
+
+    with torch.no_grad():
+        out = run(ident)
+        v = velocity_from_meanflow(ident.bind(b).avg_velocity, "identity")
+        ref = sample_sde(v, noise, 4, ident.sigma, generator=torch.Generator().manual_seed(1),
+                         clip_t=ident.config.flow_sde_clip_t)
+        assert torch.allclose(out.chain, ref.chain, atol=1e-5)
+        assert not torch.allclose(out.chain, run(bound).chain, atol=1e-3)     # a different velocity
+        # The run-time choice overrides the config both ways; re-scoring with it gives ratio 1.
+        assert torch.allclose(run(ident, meanflow_velocity="boundary").chain, run(bound).chain)
+        over = run(bound, meanflow_velocity="identity")
+        assert torch.allclose(over.chain, out.chain)
+        again = bound.chain_log_prob(b, over.chain, over.grid, meanflow_velocity="identity")
+        assert (again - over.step_log_probs).exp().sub(1).abs().max() < 1e-4
+    with torch.inference_mode():            # evaluation rollouts: the JVP runs there too
+        acts = ident.predict_action_chunk(b, sampler="sde", generator=torch.Generator().manual_seed(1))
+        assert torch.isfinite(acts).all()
+    with pytest.raises(ValueError, match="meanflow_velocity"):
+        bound.sample(b, sampler="sde", meanflow_velocity="jvp")

@@ -20,6 +20,7 @@ FLOW_PREDICTIONS = ("velocity", "sample")
 # The DDPM schedules diffusers' DDPMScheduler and DPMSolverMultistepScheduler both accept.
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
+MEANFLOW_VELOCITIES = ("boundary", "identity")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
 # carries every field: a checkpoint is read back as it was trained, never completed with
@@ -60,6 +61,11 @@ class DecoderConfig:
     flow_sde_clip_t: float = 1e-2
     flow_sde_return_logprob: bool = False
     flow_sde_logprob_sigma_only: bool = True
+    # "explore" clamps t at this time near the noise end; None: the first interior grid point.
+    flow_sde_t_min: Optional[float] = None
+    # The velocity a mean_flow decoder's ODE/SDE samplers integrate: "boundary" u(x, t, t), or
+    # "identity" u + (t − r)·du/dt by JVP (`flows.velocity_from_meanflow`).
+    meanflow_sde_velocity: str = "boundary"
     # --- MeanFlow training recipe (NOTES §2); times in our convention (t = 0 noise) ---
     meanflow_ratio_r_neq_t: float = 0.25
     meanflow_time_dist: str = "uniform"     # "logit_normal" (the paper) or "uniform" (see README)
@@ -106,6 +112,12 @@ class DecoderConfig:
         _choice("state_layout", self.state_layout, STATE_LAYOUTS)
         _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
         _choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
+        _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
+        if self.flow_sde_t_min is not None:
+            _finite("flow_sde_t_min", self.flow_sde_t_min)
+            if not 0.0 < self.flow_sde_t_min <= 1.0:
+                raise ValueError(f"flow_sde_t_min: expected None (the first interior grid point) or a "
+                                 f"time in (0, 1], got {self.flow_sde_t_min!r}")
         for name in ("num_train_timesteps", "num_inference_timesteps", "flow_sde_num_steps", "action_chunk_size",
                      "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
                      "num_attention_heads", "num_key_value_heads", "n_action_steps"):

@@ -18,7 +18,7 @@ from typing import Any, Callable, Mapping, Optional
 import torch
 from torch import Tensor, nn
 
-from .config import SDE_MIN_STEPS, DecoderConfig
+from .config import MEANFLOW_VELOCITIES, SDE_MIN_STEPS, DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow,
@@ -53,7 +53,8 @@ class Bound:
     avg_velocity: Callable[[Tensor, Tensor, Tensor], Tensor]
     model_output: Callable[[Tensor, Tensor], Tensor]
     batch_size: int
-    # What the ODE/SDE samplers integrate: the FM head, or MeanFlow's boundary u(x, t, r=t).
+    # What the ODE/SDE samplers integrate: the FM head, or MeanFlow's u turned into a velocity
+    # ("boundary" u(x, t, r=t) or "identity", `meanflow_sde_velocity`).
     flow_velocity: Optional[Callable[[Tensor, Tensor], Tensor]] = None
 
 
@@ -157,8 +158,20 @@ class ActionDecoderPolicy(nn.Module):
         # diffusers' step 0 is data, T−1 noise; ours t = 1 is data.
         return 1.0 - timestep.float() / self.config.num_train_timesteps
 
-    def bind(self, batch: Mapping[str, Any]) -> Bound:
-        """Validate and normalise `batch`, build its prefix once, return the bound callables."""
+    def _meanflow_velocity(self, meanflow_velocity: Optional[str]) -> str:
+        mode = self.config.meanflow_sde_velocity if meanflow_velocity is None else meanflow_velocity
+        if mode not in MEANFLOW_VELOCITIES:
+            raise ValueError(f"meanflow_velocity: expected one of {list(MEANFLOW_VELOCITIES)} or None "
+                             f"(the config's meanflow_sde_velocity), got {meanflow_velocity!r}")
+        return mode
+
+    def bind(self, batch: Mapping[str, Any], meanflow_velocity: Optional[str] = None) -> Bound:
+        """Validate and normalise `batch`, build its prefix once, return the bound callables.
+
+        `meanflow_velocity` ("boundary" | "identity", None: `config.meanflow_sde_velocity`)
+        picks how a mean_flow decoder's `flow_velocity` is made from u.
+        """
+        mode = self._meanflow_velocity(meanflow_velocity)
         self._validate(batch, need_actions=False)
         cond = self._prepare(batch)
         state, ctrl, prefix = cond["state"], cond["ctrl_freq"], cond["prefix"]
@@ -170,7 +183,7 @@ class ActionDecoderPolicy(nn.Module):
         if self.config.decoder_type == "flow_matching":
             bound.flow_velocity = bound.velocity
         elif self.config.decoder_type == "mean_flow":
-            bound.flow_velocity = velocity_from_meanflow(bound.avg_velocity, "boundary")
+            bound.flow_velocity = velocity_from_meanflow(bound.avg_velocity, mode)
         return bound
 
     # ------------------------------------------------------------------ training
@@ -202,9 +215,10 @@ class ActionDecoderPolicy(nn.Module):
             raise ValueError(f"sampler: decoder_type='DDPM' samples with DPM-Solver (sampler='ode' or "
                              f"None); {chosen!r} needs a flow_matching or mean_flow decoder")
         if cfg.decoder_type == "mean_flow" and chosen == "euler" and not self._warned_proxy:
-            warnings.warn("sampler='euler' on a mean_flow decoder integrates u(x, t, r=t) as a flow-"
-                          "matching velocity: an approximation (mixing table ⚠️); sampler='ode' is "
-                          "MeanFlow's native sampler", UserWarning, stacklevel=3)
+            warnings.warn("sampler='euler' on a mean_flow decoder integrates an instantaneous velocity made "
+                          "from u (meanflow_sde_velocity: the boundary u(x, t, t) or the identity's JVP) with "
+                          "Euler steps: an approximation (mixing table ⚠️); sampler='ode' is MeanFlow's native "
+                          "sampler", UserWarning, stacklevel=3)
             self._warned_proxy = True
         return chosen
 
@@ -229,20 +243,30 @@ class ActionDecoderPolicy(nn.Module):
     @torch.no_grad()
     def predict_action_chunk(self, batch: Mapping[str, Any], sampler: Optional[str] = None,
                              steps: Optional[int] = None, return_logprob: Optional[bool] = None,
-                             generator: Optional[torch.Generator] = None, noise: Optional[Tensor] = None):
+                             generator: Optional[torch.Generator] = None, noise: Optional[Tensor] = None,
+                             meanflow_velocity: Optional[str] = None):
         """Sample a chunk [B, H, D] in environment units.
 
         Returns the tensor, or a `PolicyOutput` when log-probs are returned (asked here, or
         by `flow_sde_return_logprob` for the SDE sampler). For gradients through sampling
         (SAC), call `sample(...)` instead.
         """
-        out = self.sample(batch, sampler, steps, return_logprob, generator, noise)
+        out = self.sample(batch, sampler, steps, return_logprob, generator, noise, meanflow_velocity)
         return out if out.log_prob is not None else out.actions
 
     def sample(self, batch: Mapping[str, Any], sampler: Optional[str] = None, steps: Optional[int] = None,
                return_logprob: Optional[bool] = None, generator: Optional[torch.Generator] = None,
-               noise: Optional[Tensor] = None) -> PolicyOutput:
-        """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable."""
+               noise: Optional[Tensor] = None, meanflow_velocity: Optional[str] = None) -> PolicyOutput:
+        """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable.
+
+        `meanflow_velocity` ("boundary" | "identity"; None: `config.meanflow_sde_velocity`)
+        is the velocity a mean_flow decoder integrates with sampler "sde" or "euler"; re-score
+        its chains with the same choice (`chain_log_prob(..., meanflow_velocity=...)`).
+        Log-probs (sampler "sde") are the density of the returned chain; with
+        `flow_sde_logprob_sigma_only` their gradient reaches σ only (reparameterised, SAC),
+        without it the chain is data and the gradient reaches the network through the means
+        (score-function / PPO form, that of `chain_log_prob`); see `flows.sample_sde`.
+        """
         cfg = self.config
         chosen = self.resolve_sampler(sampler)
         steps = self.resolve_steps(chosen, steps)
@@ -253,7 +277,7 @@ class ActionDecoderPolicy(nn.Module):
         if want_lp and chosen != "sde":
             raise ValueError(f"return_logprob: log-probs come from the SDE sampler; got sampler={chosen!r} "
                              f"(deterministic samplers have no density)")
-        bound = self.bind(batch)
+        bound = self.bind(batch, meanflow_velocity)
         param = next(self.model.parameters())
         if noise is None:
             noise = torch.randn((bound.batch_size, cfg.action_chunk_size, cfg.action_dim),
@@ -275,11 +299,13 @@ class ActionDecoderPolicy(nn.Module):
         out.actions = self.normalizers["actions"].unnormalize(x)
         return out
 
-    def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor, reduce: str = "sum") -> Tensor:
-        """Per-step log-probs [B, K] of a stored SDE chain under the current weights and σ (PPO)."""
+    def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor, reduce: str = "sum",
+                       meanflow_velocity: Optional[str] = None) -> Tensor:
+        """Per-step log-probs [B, K] of a stored SDE chain under the current weights and σ (PPO);
+        `meanflow_velocity` as for `sample` (use the choice that sampled the chain)."""
         if self.config.decoder_type == "DDPM":
             raise ValueError("chain_log_prob: needs a flow_matching or mean_flow decoder, got DDPM")
-        return chain_log_prob(self.bind(batch).flow_velocity, chain, self.sigma, grid=grid,
+        return chain_log_prob(self.bind(batch, meanflow_velocity).flow_velocity, chain, self.sigma, grid=grid,
                               clip_t=self.config.flow_sde_clip_t, reduce=reduce)
 
     def forward(self, batch: Mapping[str, Any], sampler: Optional[str] = None, return_logprob: Optional[bool] = None,

@@ -81,9 +81,12 @@ def _steps(grid: Tensor, batch: int) -> Steps:
 
 @functools.lru_cache(maxsize=64)
 def _uniform_steps(steps: int, batch: int, device: torch.device, dtype: torch.dtype) -> Steps:
-    # Shared between calls (never modified in place): a sampling call then costs no grid
-    # construction, no slicing and, on a GPU, no host sync for the step sizes.
-    return _steps(time_grid(steps, device=device, dtype=dtype), batch)
+    # Shared between calls: a sampling call then costs no grid construction, no slicing and,
+    # on a GPU, no host sync for the step sizes. Built outside inference mode, so that a grid
+    # first made under `torch.inference_mode()` still serves later differentiable calls; the
+    # samplers hand callers a clone of `grid`, never the cached tensor.
+    with torch.inference_mode(False):
+        return _steps(time_grid(steps, device=device, dtype=dtype), batch)
 
 
 def resolve_steps(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch.dtype) -> Steps:

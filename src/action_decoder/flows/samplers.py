@@ -56,6 +56,8 @@ def velocity_from_meanflow(avg_velocity: AvgVelocity, mode: str = "boundary",
     "boundary": v̂(x, t) = u(x, t, r=t) — the r → t limit; one network call.
     "identity": v̂ = u + (t − r)·du/dt at r = min(t + delta, 1), du/dt by JVP along the
     tangent (u, 1, 0): u stands in for the unknown v in the tangent, which costs O(delta²).
+    Two network calls (one of them a JVP) per velocity; `avg_velocity` must support
+    `torch.func.jvp` (the policy's network does: MeanFlow training differentiates it so).
     """
     if mode == "boundary":
         return lambda x, t: avg_velocity(x, t, t)
@@ -65,6 +67,7 @@ def velocity_from_meanflow(avg_velocity: AvgVelocity, mode: str = "boundary",
         raise ValueError(f"delta: expected a positive time offset, got {delta!r}")
 
     def velocity(x: Tensor, t: Tensor) -> Tensor:
+        t = t.contiguous()      # [B]; the samplers pass an expanded view, which jvp refuses
         r = (t + delta).clamp(max=1.0)
         u0 = avg_velocity(x, t, r)
         u, dudt = torch.func.jvp(lambda x_, t_: avg_velocity(x_, t_, r), (x, t),
@@ -79,7 +82,8 @@ class SDEResult:
     """What `sample_sde` did. Shapes with B batch, K steps, chunk [H, D].
 
     `chain`, `means`, `eps` are kept in the integration dtype (float32/64) so that the chain
-    can be re-scored exactly (PPO); `actions` is in the noise dtype.
+    can be re-scored exactly (PPO); `actions` is in the noise dtype. `grid` is the caller's
+    own copy: editing it changes no other call.
     """
 
     actions: Tensor                           # [B, H, D] final sample (tanh'ed if squashed)
@@ -117,6 +121,21 @@ def _step_coefficients(sigma, grid: Tensor, clip_t: float):
     return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt()             # a, b, std: each [K]
 
 
+def _check_density_std(std: Tensor, grid: Tensor) -> None:
+    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step.
+
+    std_k = σ(t_k)·√Δt_k with Δt_k > 0, so std [K] is checked. One host sync per call, made
+    after the loop's work is queued, so that on a GPU it waits only for results the caller
+    reads anyway.
+    """
+    bad = ~(torch.isfinite(std) & (std > 0))                             # [K]
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0])
+        sig = float(std[k]) / float(grid[k + 1] - grid[k]) ** 0.5
+        raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
+                         f"got σ({float(grid[k]):.6g}) = {sig:.6g} (step {k} of {len(std)})")
+
+
 def _gaussian_log_prob(z: Tensor, std: Tensor, reduce: str) -> Tensor:
     """log N of standardised residuals z [B, K, H, D] with per-step std [K] or [B, K]."""
     std = std.reshape(*std.shape, 1, 1)
@@ -147,12 +166,21 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     mean_k = a_k·x_k + b_k·v(x_k, t_k) (see `_step_coefficients`), std_k = σ(t_k)·√Δt_k,
     x_{k+1} = mean_k + std_k·ε_k. σ is evaluated once per call on the grid's K step times.
 
-    logprob="full": log N(x_{k+1}; mean_k, std_k² I); logprob="eps": the same value from
-    ε_k, −½|ε_k|² − log std_k − ½log 2π per element, whose gradient reaches σ only (the SAC
-    entropy path). reduce="sum" sums over H×D (the density of the chunk); "mean" averages
-    (Flow-GRPO's choice: a ratio of such means is the true ratio to the power 1/(H·D));
-    "none" keeps [.., H, D]. squash=True applies tanh once after the last step and
-    subtracts log|d tanh/dx| from `log_prob` (not from `step_log_probs`).
+    With `return_logprob`, `step_log_probs[:, k]` is log N(x_{k+1}; mean_k, std_k² I) of the
+    returned chain, computed from the chain itself: `chain_log_prob` with the same velocity,
+    σ and grid gives the same values (PPO ratio 1). σ must then be positive and finite on
+    every step (ValueError, checked once per call). `logprob` picks only where the gradient goes:
+      "full" — the chain is data (score-function / PPO form): each step's network call sees
+               the detached state x_k, so gradients reach the velocity's parameters through
+               the means and σ through the stds, exactly as for `chain_log_prob` of the
+               returned chain. The actions then carry a gradient through the last step only.
+      "eps"  — reparameterised (SAC's entropy term): the gradient is that of the ε form
+               −½|ε_k|² − log std_k − ½log 2π per element, which reaches σ only; the chain
+               keeps its pathwise gradient, so the actions reach the network.
+    reduce="sum" sums over H×D (the density of the chunk); "mean" averages (Flow-GRPO's
+    choice: a ratio of such means is the true ratio to the power 1/(H·D)); "none" keeps
+    [.., H, D]. squash=True applies tanh once after the last step and subtracts
+    log|d tanh/dx| from `log_prob` (not from `step_log_probs`).
     """
     _check_logprob_args(logprob, reduce, clip_t)
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
@@ -162,28 +190,34 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     B, K = noise.shape[0], grid.numel() - 1
     eps = torch.randn((B, K, *noise.shape[1:]), generator=generator, device=noise.device,
                       dtype=dtype)
+    as_data = return_logprob and logprob == "full"       # the score-function form detaches states
     x = noise.to(dtype)
     states, means = [x], []
     # Per-step views made once (unbind), not indexed inside the loop.
     for t, a_k, b_k, std_k, eps_k in zip(st.starts, a.unbind(), b.unbind(), std.unbind(), eps.unbind(1)):
-        v = checked_call(velocity, x, t, dtype=dtype, name="velocity")
-        mean = torch.addcmul(x * a_k, v, b_k)
+        x_in = x.detach() if as_data else x
+        v = checked_call(velocity, x_in, t, dtype=dtype, name="velocity")
+        mean = torch.addcmul(x_in * a_k, v, b_k)
         x = torch.addcmul(mean, eps_k, std_k)
         states.append(x)
         means.append(mean)
-    chain, means_t = torch.stack(states, 1), torch.stack(means, 1)
+    chain, means_t = torch.stack(states, 1), torch.stack(means, 1)   # [B, K+1, H, D], [B, K, H, D]
     stds = std.expand(B, K)
     final = chain[:, -1]
-    result = SDEResult(actions=final, chain=chain, means=means_t, stds=stds, eps=eps, grid=grid)
+    result = SDEResult(actions=final, chain=chain, means=means_t, stds=stds, eps=eps, grid=grid.clone())
     if squash:
         result.actions = torch.tanh(final)
+        y = final.detach() if as_data else final
         # log(1 − tanh²x) = 2·(log 2 − x − softplus(−2x)), stable for large |x|.
-        log_det = 2 * (math.log(2) - final - F.softplus(-2 * final))
+        log_det = 2 * (math.log(2) - y - F.softplus(-2 * y))
         result.squash_log_det = log_det if reduce == "none" else (
             log_det.sum((-2, -1)) if reduce == "sum" else log_det.mean((-2, -1)))
     if return_logprob:
-        resid = eps if logprob == "eps" else (chain[:, 1:] - means_t) / stds.reshape(B, K, 1, 1)
-        result.step_log_probs = _gaussian_log_prob(resid, stds, reduce)
+        _check_density_std(std, grid)
+        z = (chain[:, 1:].detach() - means_t) / stds.reshape(B, K, 1, 1)     # [B, K, H, D]
+        if logprob == "eps":
+            z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
+        result.step_log_probs = _gaussian_log_prob(z, stds, reduce)
         result.log_prob = result.step_log_probs.sum(1)
         if squash:
             result.log_prob = result.log_prob - result.squash_log_det
@@ -197,7 +231,8 @@ def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tens
 
     Use the grid stored with the chain (`SDEResult.grid`): a different grid changes every
     mean and std. For the velocity that produced the chain this equals `step_log_probs`
-    (PPO ratio 1); gradients reach the velocity's parameters through mean_k (and σ's).
+    (PPO ratio 1); gradients reach the velocity's parameters through mean_k (and σ's), and
+    the chain's own gradient if it has one (pass `chain.detach()` for the PPO form).
     """
     _check_logprob_args("full", reduce, clip_t)
     if not isinstance(chain, Tensor) or chain.dim() != 4 or chain.shape[1] < 2:
@@ -214,5 +249,6 @@ def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tens
     means = torch.stack([torch.addcmul(x * a_k, checked_call(velocity, x, t, dtype=dtype, name="velocity"), b_k)
                          for x, t, a_k, b_k in zip(chain[:, :-1].unbind(1), st.starts, a.unbind(), b.unbind())],
                         1)                                            # [B, K, H, D]
+    _check_density_std(std, grid)
     stds = std.expand(B, K)
     return _gaussian_log_prob((chain[:, 1:] - means) / stds.reshape(B, K, 1, 1), stds, reduce)

@@ -6,6 +6,7 @@ All are `nn.Module`s so a policy can own them; only `LearnableSigma` has a param
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 from torch import Tensor, nn
@@ -44,16 +45,27 @@ class ExploringSigma(nn.Module):
     """Flow-GRPO's schedule in our time direction: `a·√((1 − t) / max(t, t_min))`.
 
     Explores over the whole interval and vanishes at t = 1 (data). `t_min` caps the
-    divergence at the noise end (Flow-GRPO clamps at the first interior grid point; 0.1 is
-    that point for the default 10 steps).
+    divergence at the noise end. `t_min=None` (the default) clamps, like Flow-GRPO, at the
+    first interior point of the grid: the smallest positive time σ is evaluated on, which
+    for the samplers (they evaluate σ once per call on the K step times) is grid[1], e.g.
+    1/K on the uniform grid; σ then follows any step count. With no positive time (a single
+    step, times [0]) the clamp is 1, the grid's only other point: σ(0) = a. A number fixes
+    the clamp whatever the grid.
     """
 
-    def __init__(self, scale: float = 0.7, t_min: float = 0.1):
+    def __init__(self, scale: float = 0.7, t_min: Optional[float] = None):
         super().__init__()
-        self.scale, self.t_min = float(scale), float(t_min)
+        if t_min is not None and not (isinstance(t_min, (int, float)) and 0 < t_min <= 1):
+            raise ValueError(f"t_min: expected None (the first interior grid point) or a time in (0, 1], "
+                             f"got {t_min!r}")
+        self.scale, self.t_min = float(scale), None if t_min is None else float(t_min)
 
     def forward(self, t: Tensor) -> Tensor:
-        return self.scale * torch.sqrt((1 - t).clamp_min(0) / t.clamp_min(self.t_min))
+        if self.t_min is None:
+            floor = torch.where(t > 0, t, torch.ones_like(t)).amin()       # [] no host sync
+        else:
+            floor = self.t_min
+        return self.scale * torch.sqrt((1 - t).clamp_min(0) / t.clamp_min(floor))
 
 
 class LearnableSigma(nn.Module):
@@ -86,5 +98,5 @@ def make_sigma(config: DecoderConfig) -> nn.Module:
     elif config.flow_sde_mode == "fixed":
         base = FixedSigma(s)
     else:
-        base = ExploringSigma(s)
+        base = ExploringSigma(s, config.flow_sde_t_min)
     return LearnableSigma(base, config.flow_sde_sigma_init) if config.flow_sde_learn_sigma else base
