@@ -404,3 +404,20 @@ def test_meanflow_identity_velocity_from_config_and_at_run_time():
         assert torch.isfinite(acts).all()
     with pytest.raises(ValueError, match="meanflow_velocity"):
         bound.sample(b, sampler="sde", meanflow_velocity="jvp")
+
+
+def test_per_row_generators_make_each_row_independent_of_its_batch():
+    """One generator per row: a row's SDE sample (noise and every step's ε) is the one it gets alone."""
+    from action_decoder.flows.paths import randn_rows
+
+    velocity = lambda x, t: -x                                                   # noqa: E731
+    gens = lambda seeds: [torch.Generator().manual_seed(s) for s in seeds]      # noqa: E731
+    noise = randn_rows(3, (4, 2), gens([1, 2, 3]))
+    batched = sample_sde(velocity, noise, 5, sigma=0.5, generator=gens([11, 12, 13]), return_logprob=True)
+    for b, (ns, es) in enumerate(zip([1, 2, 3], [11, 12, 13])):
+        alone = sample_sde(velocity, randn_rows(1, (4, 2), gens([ns])), 5, sigma=0.5, generator=gens([es]),
+                           return_logprob=True)
+        torch.testing.assert_close(batched.chain[b:b + 1], alone.chain, rtol=0, atol=1e-6)
+        torch.testing.assert_close(batched.step_log_probs[b:b + 1], alone.step_log_probs, rtol=0, atol=1e-4)
+    with pytest.raises(ValueError, match="generator: expected a torch.Generator or a list of 3"):
+        sample_sde(velocity, noise, 5, sigma=0.5, generator=gens([1, 2]))

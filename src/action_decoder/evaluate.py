@@ -46,18 +46,15 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
                    generator: torch.Generator):
     """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
 
-    Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b's noise
-    comes from its own generator, seeded by (generator.initial_seed(), episode_seeds[b],
-    plan_indices[b]): an episode's actions do not depend on the other episodes sharing its batch,
-    so results do not depend on `num_envs` (up to float rounding of batched matmuls, ~1e-7).
-    The SDE draws every step's ε from one generator for the whole batch, so with `sampler="sde"`
-    the rows are sampled one at a time: for 10 rows at K = 10 on one CPU core, 1.46 s against
-    0.23 s batched. The other samplers take each row's noise in one batched call (no extra cost).
-    Without those keys the whole batch draws from `generator`.
+    Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
+    from its own generator, seeded by (generator.initial_seed(), episode_seeds[b], plan_indices[b]),
+    in one batched call (`policy.sample` takes one generator per row): an episode's actions do not
+    depend on the other episodes sharing its batch, so results do not depend on `num_envs` (up to
+    float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
+    `generator`.
     """
     device = next(policy.parameters()).device
-    cfg, base = policy.config, generator.initial_seed()
-    per_row = policy.resolve_sampler(sampler) == "sde"
+    base = generator.initial_seed()
 
     def row_generator(episode_seed, plan_index) -> torch.Generator:
         seed = np.random.SeedSequence([base, int(episode_seed), int(plan_index)]).generate_state(1, np.uint64)[0]
@@ -69,22 +66,15 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
         batch = {"state": torch.from_numpy(np.asarray(states, dtype=np.float32)).to(device)}   # [B, S]
         ctx = task_context(torch.as_tensor(task_index), num_tasks)
         batch.update({k: v.to(device) for k, v in ctx.items()})
-        kw = dict(sampler=sampler, steps=steps, return_logprob=False)
-        if episode_seeds is None and plan_indices is None:
-            return policy.sample(batch, generator=generator, **kw).actions.float().cpu().numpy()
-        if episode_seeds is None or plan_indices is None or not len(episode_seeds) == len(plan_indices) == len(states):
-            raise ValueError(f"episode_seeds, plan_indices: expected both, one per state row ({len(states)}), got "
-                             f"{None if episode_seeds is None else len(episode_seeds)} and "
-                             f"{None if plan_indices is None else len(plan_indices)}")
-        gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
-        if per_row:
-            actions = torch.cat([policy.sample({k: v[b:b + 1] for k, v in batch.items()}, generator=g, **kw).actions
-                                 for b, g in enumerate(gens)])                                  # [B, H, D]
-        else:
-            noise = torch.stack([torch.randn((cfg.action_chunk_size, cfg.action_dim), generator=g, device=device)
-                                 for g in gens])                                                # [B, H, D]
-            actions = policy.sample(batch, noise=noise, **kw).actions
-        return actions.float().cpu().numpy()
+        gens = generator
+        if episode_seeds is not None or plan_indices is not None:
+            if episode_seeds is None or plan_indices is None or not len(episode_seeds) == len(plan_indices) == len(states):
+                raise ValueError(f"episode_seeds, plan_indices: expected both, one per state row ({len(states)}), got "
+                                 f"{None if episode_seeds is None else len(episode_seeds)} and "
+                                 f"{None if plan_indices is None else len(plan_indices)}")
+            gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
+        out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens)
+        return out.actions.float().cpu().numpy()                                            # [B, H, D]
 
     return policy_fn
 

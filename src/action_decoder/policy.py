@@ -23,6 +23,7 @@ from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow,
                     velocity_from_sample)
+from .flows.paths import Generators, randn_rows
 from .normalize import make_normalizers
 from .state_layout import relative_positions
 
@@ -243,7 +244,7 @@ class ActionDecoderPolicy(nn.Module):
     @torch.no_grad()
     def predict_action_chunk(self, batch: Mapping[str, Any], sampler: Optional[str] = None,
                              steps: Optional[int] = None, return_logprob: Optional[bool] = None,
-                             generator: Optional[torch.Generator] = None, noise: Optional[Tensor] = None,
+                             generator: Generators = None, noise: Optional[Tensor] = None,
                              meanflow_velocity: Optional[str] = None):
         """Sample a chunk [B, H, D] in environment units.
 
@@ -255,13 +256,15 @@ class ActionDecoderPolicy(nn.Module):
         return out if out.log_prob is not None else out.actions
 
     def sample(self, batch: Mapping[str, Any], sampler: Optional[str] = None, steps: Optional[int] = None,
-               return_logprob: Optional[bool] = None, generator: Optional[torch.Generator] = None,
+               return_logprob: Optional[bool] = None, generator: Generators = None,
                noise: Optional[Tensor] = None, meanflow_velocity: Optional[str] = None) -> PolicyOutput:
         """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable.
 
         `meanflow_velocity` ("boundary" | "identity"; None: `config.meanflow_sde_velocity`)
         is the velocity a mean_flow decoder integrates with sampler "sde" or "euler"; re-score
         its chains with the same choice (`chain_log_prob(..., meanflow_velocity=...)`).
+        `generator` is one torch.Generator or a list of one per row: then row b's noise (and the
+        SDE's ε) come from generator[b] alone, whatever else shares the batch.
         Log-probs (sampler "sde") are the density of the returned chain; with
         `flow_sde_logprob_sigma_only` their gradient reaches σ only (reparameterised, SAC),
         without it the chain is data and the gradient reaches the network through the means
@@ -280,8 +283,8 @@ class ActionDecoderPolicy(nn.Module):
         bound = self.bind(batch, meanflow_velocity)
         param = next(self.model.parameters())
         if noise is None:
-            noise = torch.randn((bound.batch_size, cfg.action_chunk_size, cfg.action_dim),
-                                generator=generator, device=param.device)
+            noise = randn_rows(bound.batch_size, (cfg.action_chunk_size, cfg.action_dim), generator,
+                               param.device)                                        # [B, H, D]
         velocity = bound.flow_velocity
         out = PolicyOutput()
         if chosen == "sde":

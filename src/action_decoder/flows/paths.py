@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -43,6 +43,23 @@ def velocity_from_sample(x: Tensor, t: Tensor, sample: Tensor, clip: float = 0.0
     dtype = compute_dtype(x)
     t = t.to(dtype).reshape(-1, *([1] * (x.dim() - 1)))
     return (sample.to(dtype) - x.to(dtype)) / (1 - t).clamp_min(clip)
+
+
+Generators = Union[torch.Generator, Sequence[torch.Generator], None]
+"""One generator for the whole batch, or one per row (row b draws from generator[b] only, so a
+row's samples do not depend on which other rows share its batch)."""
+
+
+def randn_rows(batch: int, shape: tuple, generator: Generators = None, device=None,
+               dtype: torch.dtype = torch.float32) -> Tensor:
+    """Standard normal draws [batch, *shape] from one generator or from one generator per row."""
+    if generator is None or isinstance(generator, torch.Generator):
+        return torch.randn((batch, *shape), generator=generator, device=device, dtype=dtype)
+    gens = list(generator)
+    if len(gens) != batch or not all(isinstance(g, torch.Generator) for g in gens):
+        raise ValueError(f"generator: expected a torch.Generator or a list of {batch} (one per row), got "
+                         f"{len(gens)} item(s) of types {sorted({type(g).__name__ for g in gens})}")
+    return torch.stack([torch.randn(shape, generator=g, device=device, dtype=dtype) for g in gens])
 
 
 def compute_dtype(noise: Tensor) -> torch.dtype:

@@ -15,7 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .paths import (AvgVelocity, Velocity, check_chunk, checked_call, compute_dtype, resolve_steps)
+from .paths import (AvgVelocity, Generators, Velocity, check_chunk, checked_call, compute_dtype, randn_rows,
+                    resolve_steps)
 from .sigma import ChurnSigma, FixedSigma
 
 LOGPROB_FORMS = ("full", "eps")
@@ -158,7 +159,7 @@ def _check_logprob_args(logprob: str, reduce: str, clip_t: float) -> None:
 
 def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
                sigma: Union[nn.Module, float, None] = None, grid: Optional[Tensor] = None,
-               generator: Optional[torch.Generator] = None, return_logprob: bool = False,
+               generator: Generators = None, return_logprob: bool = False,
                logprob: str = "full", clip_t: float = 1e-2, reduce: str = "sum",
                squash: bool = False) -> SDEResult:
     """Euler–Maruyama for dx = ṽ dt + σ(t) dW with the drift that keeps the ODE's marginals.
@@ -177,6 +178,8 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
       "eps"  — reparameterised (SAC's entropy term): the gradient is that of the ε form
                −½|ε_k|² − log std_k − ½log 2π per element, which reaches σ only; the chain
                keeps its pathwise gradient, so the actions reach the network.
+    `generator` may be one generator or one per row (`paths.randn_rows`): then each row's ε
+    does not depend on the rest of the batch.
     reduce="sum" sums over H×D (the density of the chunk); "mean" averages (Flow-GRPO's
     choice: a ratio of such means is the true ratio to the power 1/(H·D)); "none" keeps
     [.., H, D]. squash=True applies tanh once after the last step and subtracts
@@ -188,8 +191,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     grid = st.grid
     a, b, std = _step_coefficients(sigma, grid, clip_t)
     B, K = noise.shape[0], grid.numel() - 1
-    eps = torch.randn((B, K, *noise.shape[1:]), generator=generator, device=noise.device,
-                      dtype=dtype)
+    eps = randn_rows(B, (K, *noise.shape[1:]), generator, noise.device, dtype)      # [B, K, H, D]
     as_data = return_logprob and logprob == "full"       # the score-function form detaches states
     x = noise.to(dtype)
     states, means = [x], []
