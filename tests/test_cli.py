@@ -340,6 +340,8 @@ def test_resume_conflicts_compare_what_takes_effect():
                                                output_dir="elsewhere", state_layout="metaworld")) == []
     assert resume_conflicts(saved, TrainConfig(task="metaworld/reach", seed=1, lr=3e-4)) == [
         "--task: push-v3 → reach-v3", "--seed: 0 → 1", "--lr: 0.001 → 0.0003"]
+    # Defaults that follow the decoder (head, sampling steps) are not listed as changes of their own.
+    assert resume_conflicts(saved, TrainConfig(decoder="mean_flow")) == ["--decoder: flow_matching → mean_flow"]
 
 
 def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, cli_main):

@@ -398,7 +398,10 @@ def resume_conflicts(saved: dict, cfg: TrainConfig) -> list[str]:
     known = {f.name for f in fields(TrainConfig)}
     old = TrainConfig(**{**asdict(cfg), **{k: v for k, v in saved.items() if k in known}})
     before, after = _effective(old), _effective(cfg)
-    return [f"--{k.replace('_', '-')}: {_fmt(before[k])} → {_fmt(after[k])}" for k in after if before[k] != after[k]]
+    # A default that resolves differently only because another listed field changed is not listed.
+    derived = ("state_layout", "augment_shift", "flow_prediction", "inference_steps")
+    return [f"--{k.replace('_', '-')}: {_fmt(before[k])} → {_fmt(after[k])}" for k in after
+            if before[k] != after[k] and (k not in derived or getattr(old, k) != getattr(cfg, k))]
 
 
 # ---------------------------------------------------------------------- plots and logs
