@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -185,3 +186,202 @@ def test_torchrun_cli_as_the_readme_writes_it(tmp_path, env, monkeypatch):
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert res.stdout.count("saved ") == 1, res.stdout      # rank 0 writes, rank 1 does not
     assert ActionDecoderPolicy.from_pretrained(out / "final").config.decoder_type == "flow_matching"
+
+
+# ---------------------------------------------------------------------- run directories, resume, errors
+def _tiny_dataset(root, seed=0, scale=1.0):
+    """Two 30-frame episodes of a made-up 6-d state / 2-d action task: trains in a second."""
+    from action_decoder.data import write_episodes
+
+    rng = np.random.default_rng(seed)
+    episodes = [{"observation.state": rng.normal(size=(30, 6)) * scale, "action": rng.uniform(-1, 1, (30, 2)),
+                 "task_index": 0, "next.reward": np.zeros(30), "next.success": np.zeros(30, bool)} for _ in range(2)]
+    write_episodes(root, episodes, ["mine"], 10)
+    return str(root)
+
+
+def _ds_args(ds, out, *more):
+    return ["train", "--dataset", ds, "--output-dir", str(out), "--batch-size", "8", "--hidden-size", "32",
+            "--num-layers", "1", "--log-every", "1", "--eval-episodes", "0", "--no-progress", *more]
+
+
+class _Res:
+    def __init__(self, returncode, stdout, stderr):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+@pytest.fixture
+def cli_main(capsys, monkeypatch, env):
+    """The CLI in this process (no interpreter start-up): args -> (returncode, stdout, stderr)."""
+    from action_decoder import cli
+
+    monkeypatch.setenv("ACTION_DECODER_CACHE", env["ACTION_DECODER_CACHE"])
+
+    def call(args):
+        capsys.readouterr()
+        code = cli.main(list(args))
+        out = capsys.readouterr()
+        return _Res(code, out.out, out.err)
+
+    return call
+
+
+def _one_line(res, *words):
+    assert res.returncode == 2, res.stdout + res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("action-decoder: error:"), res.stderr
+    assert all(w in lines[0] for w in words), (words, lines[0])
+    return lines[0]
+
+
+def test_train_defaults_to_flow_matching_with_ten_euler_steps():
+    from action_decoder.train import TrainConfig, decoder_config
+
+    cfg = TrainConfig()
+    dconf = decoder_config(cfg, 39, 4, ["push-v3"])
+    assert (cfg.decoder, dconf.decoder_type, dconf.num_inference_timesteps) == ("flow_matching", "flow_matching", 10)
+    assert (cfg.steps, cfg.demos, cfg.task) == (1500, 10, "metaworld/push")
+
+
+def test_a_second_run_on_a_locked_directory_fails_at_once_and_a_killed_holder_blocks_nothing(tmp_path, env):
+    from action_decoder.train import run_dir_lock
+
+    out = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom action_decoder.train import run_dir_lock\n"
+                               "with run_dir_lock(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(120)",
+                               str(out)], env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        start = time.time()
+        res = run(["train", *TINY, "--steps", "2", "--output-dir", str(out), "--eval-episodes", "0"], env)
+        _one_line(res, "--output-dir", str(out), "in use", f"pid {holder.pid}")
+        assert time.time() - start < 60 and not (out / "checkpoints").exists()
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert (out / ".lock").exists()                  # left behind by the killed holder...
+    with run_dir_lock(out):                          # ...and it blocks nothing: the kernel dropped the lock
+        pass
+
+
+def test_output_dir_that_is_a_file_is_refused_before_training(tmp_path, cli_main):
+    path = tmp_path / "a_file"
+    path.write_text("x")
+    res = cli_main(["train", *TINY, "--steps", "2", "--output-dir", str(path), "--eval-episodes", "0"])
+    _one_line(res, "--output-dir", str(path), "file")
+    assert "demonstrations" not in res.stdout and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["train", "--device", "gpu"], ["--device", "'gpu'"]),
+    (["train", "--device", "cuda:99"], ["--device", "cuda:99"]),
+    (["eval", "--checkpoint", "CKPT", "--device", "tpu:0"], ["--device", "tpu:0"]),
+    (["eval", "--checkpoint", "CKPT", "--device", "cuda:99"], ["--device", "cuda:99"]),
+])
+def test_bad_device_gives_one_line_for_every_subcommand(tmp_path, cli_main, args, words):
+    args = [str(tmp_path) if a == "CKPT" else a for a in args]
+    _one_line(cli_main([*args, "--output-dir", str(tmp_path / "o")] if args[0] == "train" else args), *words)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_cuda_without_cuda_gives_one_line(tmp_path, cli_main):
+    _one_line(cli_main(["train", "--device", "cuda", "--output-dir", str(tmp_path / "o")]), "--device", "not available")
+
+
+def test_progress_goes_to_stderr_and_results_to_stdout(tmp_path, env):
+    ds = _tiny_dataset(tmp_path / "ds")
+    args = [a for a in _ds_args(ds, tmp_path / "out", "--steps", "5") if a != "--no-progress"]
+    with open(tmp_path / "log", "w") as log:
+        res = subprocess.run([sys.executable, "-m", "action_decoder.cli", *args], env=env, stdout=log,
+                             stderr=subprocess.PIPE, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    text = (tmp_path / "log").read_bytes()          # bytes: read_text() would turn "\r" into "\n"
+    assert b"\r" not in text and b"saved " in text, text[:300]
+
+
+def test_dataset_training_and_errors_without_the_simulator(tmp_path, env):
+    ds = _tiny_dataset(tmp_path / "ds")
+    script = tmp_path / "no_sim.py"
+    script.write_text("import sys\nfor name in ('gymnasium', 'metaworld', 'mujoco'):\n    sys.modules[name] = None\n"
+                      "from action_decoder.cli import main\nsys.exit(main(sys.argv[1:]))\n")
+    res = subprocess.run([sys.executable, str(script), *_ds_args(ds, tmp_path / "out", "--steps", "3")], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert ActionDecoderPolicy.from_pretrained(tmp_path / "out" / "final").config.extra["tasks"] == ["mine"]
+    res = subprocess.run([sys.executable, str(script), "eval", "--checkpoint", str(tmp_path / "out" / "final")],
+                         env=env, capture_output=True, text=True, timeout=300)
+    _one_line(res, "gymnasium", "action-decoder[sim]")
+
+
+def test_resume_refuses_changed_settings_in_one_line_and_accepts_more_steps(tmp_path, cli_main):
+    ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
+    assert cli_main(_ds_args(ds, out, "--steps", "2")).returncode == 0
+    line = _one_line(cli_main(_ds_args(ds, out, "--steps", "4", "--resume", "--decoder", "mean_flow",
+                                       "--hidden-size", "64")),
+                     "--decoder: flow_matching → mean_flow", "--hidden-size: 32 → 64")
+    assert "--steps" not in line
+    _one_line(cli_main(_ds_args(_tiny_dataset(tmp_path / "other", seed=1), out, "--steps", "4", "--resume")),
+              "--dataset:", str(tmp_path / "other"))
+    _one_line(cli_main(_ds_args(ds, out, "--steps", "1", "--resume")), "--steps", "step 2")
+    _tiny_dataset(tmp_path / "ds", seed=0, scale=3.0)          # same directory, other data
+    _one_line(cli_main(_ds_args(ds, out, "--steps", "4", "--resume")), "normalisation statistics")
+    _tiny_dataset(tmp_path / "ds", seed=0)
+    res = cli_main(_ds_args(ds, out, "--steps", "4", "--resume", "--checkpoint-every", "3", "--log-every", "2"))
+    assert res.returncode == 0 and "continuing from" in res.stdout, res.stderr
+    assert json.loads((out / "train_log.json").read_text())["history"][-1]["step"] == 4
+
+
+def test_resume_conflicts_compare_what_takes_effect():
+    from dataclasses import asdict
+
+    from action_decoder.train import TrainConfig, resume_conflicts
+
+    saved = asdict(TrainConfig(task="metaworld/push", seed=0))
+    assert resume_conflicts(saved, TrainConfig(task="metaworld/push-v3", steps=3000, device="cpu",
+                                               output_dir="elsewhere", state_layout="metaworld")) == []
+    assert resume_conflicts(saved, TrainConfig(task="metaworld/reach", seed=1, lr=3e-4)) == [
+        "--task: push-v3 → reach-v3", "--seed: 0 → 1", "--lr: 0.001 → 0.0003"]
+    # Defaults that follow the decoder (head, sampling steps) are not listed as changes of their own.
+    assert resume_conflicts(saved, TrainConfig(decoder="mean_flow")) == ["--decoder: flow_matching → mean_flow"]
+
+
+def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, cli_main):
+    ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
+    ckpts = out / "checkpoints"
+    assert cli_main(_ds_args(ds, out, "--steps", "4", "--checkpoint-every", "2")).returncode == 0
+    (ckpts / "step_0000004" / "training_state.pt").write_bytes(b"garbage")
+    res = cli_main(_ds_args(ds, out, "--steps", "6", "--checkpoint-every", "2", "--resume"))
+    assert res.returncode == 0, res.stderr
+    lines = [line for line in res.stdout.splitlines() if line.startswith("resume:")]
+    assert len(lines) == 1 and "names step_0000004, which does not load" in lines[0], res.stdout
+    assert f"continuing from {ckpts / 'step_0000002'} (step 2)" in lines[0]
+    shutil.rmtree(ckpts / "step_0000006")                    # `last` now names a deleted checkpoint
+    res = cli_main(_ds_args(ds, out, "--steps", "8", "--checkpoint-every", "2", "--resume"))
+    assert res.returncode == 0, res.stderr
+    assert "names step_0000006, which is missing" in res.stdout
+    assert f"continuing from {ckpts / 'step_0000004'} (step 4)" in res.stdout
+    assert [h["step"] for h in json.loads((out / "train_log.json").read_text())["history"]] == list(range(1, 9))
+
+
+def test_full_disk_gives_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch, capsys):
+    import errno
+
+    from action_decoder import cli
+
+    ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
+    real_save, calls = torch.save, []
+
+    def save(obj, f, *a, **k):                  # the second checkpoint finds the disk full
+        calls.append(f)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_save(obj, f, *a, **k)
+
+    monkeypatch.setattr(torch, "save", save)
+    assert cli.main(_ds_args(ds, out, "--steps", "4", "--checkpoint-every", "2")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no space left" in err[0] and "step_0000002 is intact" in err[0], err
+    kept = out / "checkpoints" / "step_0000002"
+    assert ActionDecoderPolicy.from_pretrained(kept) is not None
+    assert torch.load(kept / "training_state.pt", weights_only=False)["step"] == 2
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["last", "step_0000002"]

@@ -259,6 +259,25 @@ def test_load_dataset_rejects_nan_and_missing(tmp_path):
         load_dataset(tmp_path / "ok")
 
 
+def test_empty_episode_file_is_named(tmp_path):
+    _write_tiny(tmp_path / "ds", np.ones((5, 2)))
+    path = tmp_path / "ds" / "data" / "chunk-000" / "episode_000001.parquet"
+    pq.write_table(pq.read_table(path).slice(0, 0), path)        # the columns, no frames
+    with pytest.raises(ValueError, match=r"episode_000001\.parquet: expected an episode with at least one frame"):
+        load_dataset(tmp_path / "ds")
+
+
+@pytest.mark.parametrize("name, content", [("stats.json", "{not json"), ("stats.json", '[1, 2]'),
+                                           ("stats.json", '{"observation.state": {"mean": "abc", "std": 1, "min": 0, "max": 1}}'),
+                                           ("info.json", "\x00garbage"), ("tasks.jsonl", "not json\n")])
+def test_garbage_metadata_names_the_file(tmp_path, name, content):
+    _write_tiny(tmp_path / "ds", np.ones((5, 2)))
+    (tmp_path / "ds" / "meta" / name).write_text(content)
+    with pytest.raises(ValueError, match=rf"meta/{name}: expected") as err:
+        load_dataset(tmp_path / "ds")
+    assert "\n" not in str(err.value)
+
+
 def test_evaluate_expert_and_zero_policy():
     expert = expert_policy("metaworld/reach")
     done = []

@@ -6,6 +6,32 @@ import os
 import sys
 
 
+SIM_MODULES = ("gymnasium", "metaworld", "mujoco", "pyarrow")
+
+
+def check_device(name: str, option: str = "--device") -> None:
+    """Refuse a device string torch cannot parse, or a device this machine does not have, in one
+    line (before any work: otherwise torch fails deep inside the first tensor move)."""
+    import torch
+
+    if name == "auto":
+        return
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{option}: expected auto, cpu, cuda, cuda:N or another torch device, got {name!r}") from None
+    if device.type == "cpu":
+        return
+    backend = getattr(torch, device.type, None) if device.type != "mps" else torch.backends.mps
+    if backend is None or not hasattr(backend, "is_available") or not backend.is_available():
+        raise ValueError(f"{option}: {name!r} is not available on this machine (torch {torch.__version__}); "
+                         f"use --device cpu or auto")
+    count = backend.device_count() if hasattr(backend, "device_count") else 1
+    if device.index is not None and device.index >= count:
+        raise ValueError(f"{option}: {name!r} names device {device.index}, but this machine has {count} "
+                         f"{device.type} device(s) (0..{count - 1})")
+
+
 def main(argv: list[str] | None = None) -> int:
     # One torch thread unless the user says otherwise: two run 10-100x slower on small CPUs.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -22,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
+        if hasattr(cfg, "device"):
+            check_device(cfg.device)
         if isinstance(cfg, TrainConfig):
             final = train(cfg)
             rank = int(os.environ.get("RANK", 0))
@@ -32,8 +60,16 @@ def main(argv: list[str] | None = None) -> int:
             finetune(cfg)
         else:
             run_eval(cfg)
-    except (ValueError, FileNotFoundError, FloatingPointError) as err:
-        print(f"action-decoder: error: {err}", file=sys.stderr)
+    except (ValueError, OSError, FloatingPointError) as err:
+        # An OSError built with (errno, message) prints its message; a system one keeps its path.
+        message = err.strerror if isinstance(err, OSError) and err.strerror and err.filename is None else err
+        print(f"action-decoder: error: {message}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as err:
+        if err.name not in SIM_MODULES:
+            raise
+        print(f"action-decoder: error: {err.name} is not installed; the simulator and dataset readers come "
+              f"with: pip install \"action-decoder[sim]\"", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("action-decoder: interrupted; continue with --resume", file=sys.stderr)

@@ -7,6 +7,8 @@ included — is computed inside the DDP wrapper's forward, so gradients are all-
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import gc
 import json
 import math
@@ -15,7 +17,7 @@ import random
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -38,7 +40,10 @@ class TrainConfig:
     """Meta-World task(s): a name, a comma-separated list, or a group (MT10, medium, hard, very_hard)."""
     dataset: Optional[str] = None
     """Train on this LeRobot-layout dataset directory instead of generating demonstrations."""
-    decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "mean_flow"
+    decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "flow_matching"
+    """flow_matching (sampled with 10 Euler steps) is the default: at this command's own budget
+    (1500 steps, 10 demonstrations) it reached about 63 % success on five hard Meta-World tasks
+    where MeanFlow with 1-step sampling reached about 40 %."""
     steps: int = 1500
     """Optimizer steps."""
     demos: int = 10
@@ -94,7 +99,9 @@ class TrainConfig:
     eval_episodes: int = 20
     """Closed-loop episodes after training (0: skip)."""
     device: str = "auto"
+    """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another available torch device."""
     progress: bool = True
+    """A progress bar on stderr, shown only when stderr is a terminal."""
 
 
 DEFAULT_STEPS = {"DDPM": 10, "flow_matching": 10, "mean_flow": 1}
@@ -108,7 +115,9 @@ def _dist_env() -> tuple[int, int, int]:
 def _device(name: str, local_rank: int) -> torch.device:
     if name == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    return torch.device(name)
+    device = torch.device(name)
+    # Under torchrun a bare "cuda" means each process's own GPU, not all of them on GPU 0.
+    return torch.device("cuda", local_rank) if device.type == "cuda" and device.index is None else device
 
 
 # ---------------------------------------------------------------------- data
@@ -207,22 +216,47 @@ def _set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
 
 
+def _disk_error(err: BaseException, target: Path, out: Path) -> OSError:
+    """One line for a failed write: what could not be written, why, and what is still intact."""
+    root = target.parent if target.parent.exists() else out
+    full = getattr(err, "errno", None) in (errno.ENOSPC, errno.EDQUOT)
+    with contextlib.suppress(OSError):
+        full = full or shutil.disk_usage(root).free < 2**20        # torch's writer raises RuntimeError
+    why = "no space left on device" if full else (str(err).strip().splitlines() or [type(err).__name__])[-1]
+    kept = last_checkpoint(out)
+    keep = f"the previous checkpoint {kept} is intact" if kept else "no earlier checkpoint exists"
+    return OSError(errno.ENOSPC if full else getattr(err, "errno", None) or errno.EIO,
+                   f"cannot write {target}: {why}; {keep} (free space, then continue with --resume)")
+
+
+@contextlib.contextmanager
+def _writing(target: Path, out: Path, tmp: Optional[Path] = None):
+    """Turn a failed write (full disk, read-only directory) into one line, removing `tmp`."""
+    try:
+        yield
+    except (OSError, RuntimeError) as err:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise _disk_error(err, target, out) from None
+
+
 def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
     """Write `checkpoints/step_N` (policy + `training_state.pt`) through a temporary directory
-    and a rename, then point `checkpoints/last` at it (also atomically): a crash leaves the
-    previous checkpoint intact. Keeps the last two."""
+    and a rename, then point `checkpoints/last` at it (also atomically): a crash or a full disk
+    leaves the previous checkpoint intact (a full disk raises OSError saying so). Keeps the last two."""
     root = out / CKPT_DIR
-    root.mkdir(parents=True, exist_ok=True)
     final = root / f"step_{step:07d}"
     tmp = root / f".tmp_step_{step:07d}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    policy.save_pretrained(tmp)
-    torch.save(state, tmp / "training_state.pt")
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    pointer = root / (LAST + ".tmp")
-    pointer.write_text(final.name)
-    os.replace(pointer, root / LAST)
+    with _writing(final, out, tmp):
+        root.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        policy.save_pretrained(tmp)
+        torch.save(state, tmp / "training_state.pt")
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        pointer = root / (LAST + ".tmp")
+        pointer.write_text(final.name)
+        os.replace(pointer, root / LAST)
     for old in sorted(root.glob("step_*"))[:-2]:
         shutil.rmtree(old, ignore_errors=True)
     return final
@@ -231,11 +265,48 @@ def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
 def save_final(out: Path, policy) -> Path:
     """`out/final` in `save_pretrained` format, replaced atomically."""
     final, tmp = out / FINAL, out / ".tmp_final"
-    shutil.rmtree(tmp, ignore_errors=True)
-    policy.save_pretrained(tmp)
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
+    with _writing(final, out, tmp):
+        shutil.rmtree(tmp, ignore_errors=True)
+        policy.save_pretrained(tmp)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
     return final
+
+
+LOCK = ".lock"
+
+
+@contextlib.contextmanager
+def run_dir_lock(out: Path, option: str = "--output-dir"):
+    """Hold an exclusive lock on `out/.lock` (created with `out`) while the block runs.
+
+    A second run on the same directory fails at once with one line naming the holder's pid,
+    instead of both writing checkpoints into it. The kernel drops the lock when its process
+    ends, killed or not, so a lock file left behind never blocks a later run. `out` must be a
+    directory or not exist yet; anything else is refused before any work starts."""
+    import fcntl
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{option}: expected a directory (new or from an earlier run), got the file {out}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:
+        raise ValueError(f"{option}: cannot write to {out} ({err.strerror})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise ValueError(f"{option}: {out} is in use by another run (pid {holder}); wait for it to end "
+                         f"or choose another directory") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield out
+    finally:
+        os.close(fd)
 
 
 def weight_average(policy, decay: float) -> Optional[torch.optim.swa_utils.AveragedModel]:
@@ -259,11 +330,78 @@ def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen
 
 
 def last_checkpoint(out: Path) -> Optional[Path]:
-    pointer = out / CKPT_DIR / LAST
-    if not pointer.is_file():
-        return None
-    path = out / CKPT_DIR / pointer.read_text().strip()
-    return path if (path / "training_state.pt").is_file() else None
+    """The newest `checkpoints/step_*` that holds a `training_state.pt` (None: no checkpoint).
+
+    Newest by step, not by the `last` pointer, so that a deleted or half-written target does
+    not hide an intact older checkpoint. `resume_checkpoint` also checks that it loads."""
+    steps = sorted((out / CKPT_DIR).glob("step_*"), reverse=True)
+    return next((p for p in steps if (p / "training_state.pt").is_file()), None)
+
+
+def resume_checkpoint(out: Path, device: torch.device) -> Optional[tuple[Path, ActionDecoderPolicy, dict, str]]:
+    """The newest checkpoint of `out` whose config, weights and training state load:
+    (path, policy, training state, a note saying why it is not the one `last` names, or "").
+    None when `out` has no checkpoint; ValueError when it has some but none loads."""
+    root = out / CKPT_DIR
+    pointer = root / LAST
+    named = pointer.read_text(errors="replace").strip() if pointer.is_file() else None
+    skipped = {}
+    for path in sorted(root.glob("step_*"), reverse=True):
+        try:
+            policy = ActionDecoderPolicy.from_pretrained(path, map_location=device)
+            state = torch.load(path / "training_state.pt", map_location="cpu", weights_only=False)
+        except Exception as err:   # any failure to load means: not intact, try the next one
+            skipped[path.name] = (str(err).strip().splitlines() or [type(err).__name__])[0][:120]
+            continue
+        if named == path.name:
+            return path, policy, state, ""
+        if named is None:
+            why = f"{pointer} is missing"
+        elif named in skipped:
+            why = f"{pointer} names {named}, which does not load ({skipped[named]})"
+        elif not (root / named).exists():
+            why = f"{pointer} names {named}, which is missing"
+        else:
+            why = f"{pointer} names {named}, older than {path.name}"
+        return path, policy, state, why
+    if skipped:
+        raise ValueError(f"--resume: no intact checkpoint in {root}: "
+                         + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+    return None
+
+
+def _fmt(value) -> str:
+    return ",".join(map(str, value)) if isinstance(value, list) else str(value)
+
+
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "eval_episodes", "progress", "device", "resume", "output_dir")
+"""TrainConfig fields that `--resume` may change: they do not change what is trained."""
+
+
+def _effective(cfg: TrainConfig) -> dict:
+    """Every field that decides what is trained, as it takes effect (defaults resolved)."""
+    values = asdict(cfg)
+    on_dataset = cfg.dataset is not None
+    if not on_dataset:
+        from .envs.metaworld_tasks import resolve_tasks
+    values.update(
+        dataset=str(Path(cfg.dataset).expanduser().resolve()) if on_dataset else None,
+        task=None if on_dataset else resolve_tasks(cfg.task),   # --dataset ignores --task and --demos
+        demos=None if on_dataset else cfg.demos, state_layout=state_layout(cfg), augment_shift=augment_shift(cfg),
+        flow_prediction=flow_prediction(cfg), inference_steps=cfg.inference_steps or DEFAULT_STEPS[cfg.decoder])
+    return {k: v for k, v in values.items() if k not in RESUMABLE}
+
+
+def resume_conflicts(saved: dict, cfg: TrainConfig) -> list[str]:
+    """`--field: saved → given` for each setting of `cfg` that differs from the run `saved`
+    (a checkpoint's `extra["train"]`). Fields the saved run did not record are not compared."""
+    known = {f.name for f in fields(TrainConfig)}
+    old = TrainConfig(**{**asdict(cfg), **{k: v for k, v in saved.items() if k in known}})
+    before, after = _effective(old), _effective(cfg)
+    # A default that resolves differently only because another listed field changed is not listed.
+    derived = ("state_layout", "augment_shift", "flow_prediction", "inference_steps")
+    return [f"--{k.replace('_', '-')}: {_fmt(before[k])} → {_fmt(after[k])}" for k in after
+            if before[k] != after[k] and (k not in derived or getattr(old, k) != getattr(cfg, k))]
 
 
 # ---------------------------------------------------------------------- plots and logs
@@ -302,7 +440,8 @@ def _check(cfg: TrainConfig) -> None:
 
 
 def train(cfg: TrainConfig) -> Path:
-    """Train; returns the directory of the final `save_pretrained` checkpoint."""
+    """Train; returns the directory of the final `save_pretrained` checkpoint. The first process
+    holds `run_dir_lock(output_dir)` throughout, so two runs never share a directory."""
     _check(cfg)
     rank, world, local_rank = _dist_env()
     if world > 1 and not torch.distributed.is_initialized():
@@ -310,11 +449,58 @@ def train(cfg: TrainConfig) -> Path:
         torch.distributed.init_process_group(backend)
     if cfg.batch_size % world:
         raise ValueError(f"--batch-size: expected a multiple of the {world} processes, got {cfg.batch_size}")
-    device = _device(cfg.device, local_rank)
+    with run_dir_lock(Path(cfg.output_dir)) if rank == 0 else contextlib.nullcontext():
+        return _train(cfg, rank, world, _device(cfg.device, local_rank))
+
+
+def _resume(cfg: TrainConfig, out: Path, device: torch.device, main: bool):
+    """Before any data is loaded: the checkpoint to continue from, checked against `cfg`
+    (None: start at step 0)."""
+    if not cfg.resume:
+        if main and (last_checkpoint(out) is not None or (out / CKPT_DIR / LAST).exists()):
+            raise ValueError(f"--output-dir: {out} already holds a training run; pass --resume to continue it "
+                             f"or choose another directory")
+        return None
+    found = resume_checkpoint(out, device)
+    if found is None:
+        if main:
+            print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from step 0", flush=True)
+        return None
+    ckpt, loaded, state, note = found
+    conflicts = resume_conflicts(loaded.config.extra.get("train") or {}, cfg)
+    if conflicts:
+        raise ValueError(f"--resume: {ckpt} was trained with other settings ("
+                         + "; ".join(conflicts)
+                         + "); resume with the saved values or choose another --output-dir")
+    if cfg.steps < state["step"]:
+        raise ValueError(f"--steps: {ckpt} is at step {state['step']}; expected --steps >= {state['step']}, "
+                         f"got {cfg.steps}")
+    if main:
+        print(f"resume: {note + '; ' if note else ''}continuing from {ckpt} (step {state['step']})"
+              + (", the newest intact checkpoint" if note else ""), flush=True)
+    return ckpt, loaded, state
+
+
+def _check_same_policy(ckpt: Path, loaded: ActionDecoderPolicy, policy: ActionDecoderPolicy) -> None:
+    """The resumed checkpoint's network config and normalisation statistics are the new run's."""
+    new, old = policy.config.to_dict(), loaded.config.to_dict()
+    changed = [f"{k}: {_fmt(old.get(k))} → {_fmt(v)}" for k, v in new.items() if k != "extra" and old.get(k) != v]
+    if changed:
+        raise ValueError(f"--resume: {ckpt} holds another policy ({'; '.join(changed)}); resume with the "
+                         f"saved settings or choose another --output-dir")
+    stats = [k for k, v in policy.state_dict().items() if k.startswith("normalizers.")
+             and not torch.allclose(v.cpu(), loaded.state_dict()[k].cpu(), rtol=1e-5, atol=1e-6)]
+    if stats:
+        raise ValueError(f"--resume: the training data's normalisation statistics ({', '.join(stats)}) differ "
+                         f"from those in {ckpt}: the data changed since the run began; resume with the same "
+                         f"data or choose another --output-dir")
+
+
+def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Path:
     out = Path(cfg.output_dir)
     main = rank == 0
-
     shift = augment_shift(cfg)
+    resumed = _resume(cfg, out, device, main)
     ds, tasks = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
     torch.manual_seed(cfg.seed)
@@ -333,28 +519,18 @@ def train(cfg: TrainConfig) -> Path:
     start, history = 0, []
     ema = weight_average(policy, cfg.ema_decay)
 
-    if cfg.resume:
-        ckpt = last_checkpoint(out)
-        if ckpt is None:
-            if main:
-                print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from step 0", flush=True)
-        else:
-            loaded = ActionDecoderPolicy.from_pretrained(ckpt, map_location=device)
-            policy.load_state_dict(loaded.state_dict())
-            state = torch.load(ckpt / "training_state.pt", map_location="cpu", weights_only=False)
-            optimizer.load_state_dict(state["optimizer"])
-            scheduler.load_state_dict(state["scheduler"])
-            data_gen.set_state(state["data_gen"])
-            loss_gen.set_state(state["loss_gen"].to(loss_gen.get_state().device))
-            _set_rng_state(state["rng"])
-            start, history = state["step"], state["history"]
-            if ema is not None and state.get("ema") is not None:
-                ema.load_state_dict(state["ema"])
-            if main:
-                print(f"resume: continuing from {ckpt} (step {start})", flush=True)
-    elif main and last_checkpoint(out) is not None:
-        raise ValueError(f"--output-dir: {out} already holds a training run; pass --resume to continue it "
-                         f"or choose another directory")
+    if resumed is not None:
+        ckpt, loaded, state = resumed
+        _check_same_policy(ckpt, loaded, policy)
+        policy.load_state_dict(loaded.state_dict())
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        data_gen.set_state(state["data_gen"])
+        loss_gen.set_state(state["loss_gen"].to(loss_gen.get_state().device))
+        _set_rng_state(state["rng"])
+        start, history = state["step"], state["history"]
+        if ema is not None and state.get("ema") is not None:
+            ema.load_state_dict(state["ema"])
 
     model = policy
     if world > 1:
@@ -364,8 +540,9 @@ def train(cfg: TrainConfig) -> Path:
     bar = None
     if main and cfg.progress:
         from tqdm import tqdm
+        # stderr, and only on a terminal: results stay on stdout, and a redirected log gets no bar.
         bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.decoder}", dynamic_ncols=True,
-                   file=sys.stdout)
+                   file=sys.stderr, disable=None)
     policy.train()
     t0, running = time.perf_counter(), []
     for step in range(start, cfg.steps):
@@ -399,9 +576,11 @@ def train(cfg: TrainConfig) -> Path:
     final = out / FINAL
     if main:
         save_final(out, policy if ema is None else ema.module)
-        (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
-        if history:
-            plot_losses(history, out / "loss.png", f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")
+        with _writing(out / "train_log.json", out):
+            (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
+            if history:
+                plot_losses(history, out / "loss.png",
+                            f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")
         print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training)", flush=True)
     if world > 1:
         torch.distributed.barrier()

@@ -29,11 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..envs.metaworld_tasks import (MAX_EPISODE_STEPS, SEED_STRIDE, canonical_task, demo_seeds, expert_policy,
-                                    make_env, resolve_tasks, restore_state, save_state)
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset, write_episodes
 
+# The simulator (gymnasium, metaworld, mujoco: the [sim] extra) is imported inside the functions that
+# record demonstrations, so that `--dataset` training and `from action_decoder.data import ...` work
+# without it.
 POST_SUCCESS_STEPS = 10
 LOOKAHEAD = 32
 """Clean expert actions stored per noisy frame: enough for chunks of up to 32 actions."""
@@ -59,6 +60,8 @@ def _is_complete(path: Path, num_episodes: int, first_layout: int) -> bool:
 def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
     """``[LOOKAHEAD, D]``: ``action`` and the clean expert's next actions from the env's current
     state; the env is left as it was. Past Meta-World's step cap the last action is held."""
+    from ..envs.metaworld_tasks import MAX_EPISODE_STEPS, restore_state, save_state
+
     saved, actions = save_state(env), [action]
     while len(actions) < LOOKAHEAD and env.unwrapped.curr_path_length < MAX_EPISODE_STEPS:
         actions.append(expert(env.step(actions[-1])[0]))
@@ -70,6 +73,8 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
     the executed action is perturbed (noise drawn from ``seed``), the recorded one is not, and
     each frame keeps the clean continuation."""
+    from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
+
     obs = env.reset(seed=seed)[0]
     noise = np.random.default_rng(seed)
     states, actions, continuations, rewards, successes, first_success = [], [], [], [], [], None
@@ -110,6 +115,8 @@ def generate_demos(
     partial dataset). Raises RuntimeError if ``ceil(N * max_attempts_factor)`` attempts
     do not yield N successes.
     """
+    from ..envs.metaworld_tasks import SEED_STRIDE, canonical_task, demo_seeds, expert_policy, make_env
+
     name = canonical_task(task)
     if not isinstance(num_episodes, (int, np.integer)) or num_episodes < 1:
         raise ValueError(f"num_episodes: expected an integer >= 1, got {num_episodes!r}")
@@ -162,5 +169,7 @@ def generate_demos(
 def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0) -> EpisodeDataset:
     """Expert demonstrations of every task in ``spec`` (generated or cached), concatenated;
     ``task_index`` follows the order of ``resolve_tasks(spec)``."""
+    from ..envs.metaworld_tasks import resolve_tasks
+
     return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed, action_noise=action_noise))
                             for t in resolve_tasks(spec)])

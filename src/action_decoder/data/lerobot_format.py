@@ -22,7 +22,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset
-from .stats import compute_stats, load_stats, save_stats
+from .stats import compute_stats, load_stats, read_json, save_stats
 
 REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
 CHUNK_SIZE = 1000
@@ -111,7 +111,12 @@ def _read_tasks(root: Path, count: int) -> list[str]:
     path = root / "meta" / "tasks.jsonl"
     if not path.exists():
         return [f"task_{i}" for i in range(count)]
-    entries = sorted((int(d["task_index"]), str(d["task"])) for d in map(json.loads, path.read_text().splitlines()) if d)
+    try:
+        lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        entries = sorted((int(d["task_index"]), str(d["task"])) for d in lines)
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: expected one JSON object {{\"task_index\": int, \"task\": str}} per line, "
+                         f"got unreadable content ({type(err).__name__}: {err})") from None
     if [i for i, _ in entries] != list(range(len(entries))) or len(entries) < count:
         raise ValueError(f"{path}: expected task_index 0..{count - 1} each once, got {[i for i, _ in entries]}")
     return [t for _, t in entries]
@@ -129,7 +134,13 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
         raise ValueError(f"load_dataset: expected parquet files under {root / 'data'}, found none")
     tables = []
     for path in files:
-        table = pq.read_table(path)
+        try:
+            table = pq.read_table(path)
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(f"{path}: expected a parquet episode file, got unreadable content ({err})") from None
+        if table.num_rows == 0:
+            raise ValueError(f"{path}: expected an episode with at least one frame, got an empty file (0 rows); "
+                             f"delete it or record the episode again")
         missing = [c for c in REQUIRED_COLUMNS if c not in table.column_names]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {table.column_names}")
@@ -168,7 +179,8 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
             raise ValueError(f"{root}: column {name!r} has NaN/Inf values in episode {episode[row]} (frame {frame[row]})")
 
     info_path = root / "meta" / "info.json"
-    fps = json.loads(info_path.read_text()).get("fps") if info_path.exists() else None
+    info = read_json(info_path, "LeRobot dataset info with \"fps\"") if info_path.exists() else {}
+    fps = info.get("fps") if isinstance(info, dict) else None
     tasks = _read_tasks(root, int(task.max()) + 1)
     stats_path = root / "meta" / "stats.json"
     stats = load_stats(stats_path, {STATE: states.shape[1], ACTION: actions.shape[1]}) if stats_path.exists() else {}

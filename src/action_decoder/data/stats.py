@@ -33,6 +33,15 @@ def compute_stats(features: Mapping[str, np.ndarray], std_floor: float = STD_FLO
     return stats
 
 
+def read_json(path: str | Path, expected: str):
+    """``json.loads`` of a file, with a ValueError naming the file and what it should hold."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: expected JSON ({expected}), got unreadable content ({err}); "
+                         f"fix or delete the file") from None
+
+
 def save_stats(stats: Mapping[str, Mapping], path: str | Path) -> None:
     """Write statistics as JSON lists."""
     out = {name: {k: np.asarray(v).tolist() if k in STAT_KEYS else v for k, v in s.items()} for name, s in stats.items()}
@@ -40,13 +49,20 @@ def save_stats(stats: Mapping[str, Mapping], path: str | Path) -> None:
 
 
 def load_stats(path: str | Path, dims: Mapping[str, int], std_floor: float = STD_FLOOR) -> dict[str, dict]:
-    """Read statistics for the features in ``dims`` (name -> width), flooring the std."""
-    raw = json.loads(Path(path).read_text())
+    """Read statistics for the features in ``dims`` (name -> width), flooring the std. A file that
+    is not such JSON raises ValueError naming it (delete it and the statistics are recomputed)."""
+    raw = read_json(path, "LeRobot statistics: {feature: {mean, std, min, max}}")
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: expected a JSON object {{feature: {{mean, std, min, max}}}}, got {type(raw).__name__}")
     stats = {}
     for name, dim in dims.items():
-        if name not in raw or any(k not in raw[name] for k in STAT_KEYS):
-            raise ValueError(f"{path}: expected {name!r} with keys {list(STAT_KEYS)}, got {sorted(raw.get(name, raw))}")
-        entry = {k: np.asarray(raw[name][k], dtype=np.float32).reshape(-1) for k in STAT_KEYS}
+        if not isinstance(raw.get(name), dict) or any(k not in raw[name] for k in STAT_KEYS):
+            found = sorted(raw[name]) if isinstance(raw.get(name), dict) else sorted(raw)
+            raise ValueError(f"{path}: expected {name!r} with keys {list(STAT_KEYS)}, got {found}")
+        try:
+            entry = {k: np.asarray(raw[name][k], dtype=np.float32).reshape(-1) for k in STAT_KEYS}
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{path}: expected lists of numbers as {name} for {list(STAT_KEYS)} ({err})") from None
         for k, v in entry.items():
             if v.shape != (dim,):
                 raise ValueError(f"{path}: {name}.{k} expected {dim} values, got {v.shape[0]}")
