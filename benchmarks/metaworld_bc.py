@@ -43,8 +43,8 @@ LABELS = {("DDPM", "ode", 10): "DDPM K=10", ("flow_matching", "ode", 10): "FM K=
           ("mean_flow", "ode", 2): "MF K=2", ("mlp_baseline", "ode", 10): "MLP ref. K=10",
           ("mlp_baseline", "ode", 1): "MLP ref. K=1", ("scripted_expert", "expert", 1): "expert"}
 CLI = [sys.executable, "-m", "action_decoder.cli"]
-# Every run trained before session 14 used batch 128: its rows lack a batch, and its directory name
-# its budget. A run with another batch names its budget, so as not to reuse the directory of one of them.
+# Rows without a batch size were trained with batch 128, and their run directories name only the
+# step budget. A run with another batch names it too, so as not to reuse the directory of one of them.
 LEGACY_BATCH = 128
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 

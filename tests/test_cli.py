@@ -155,7 +155,7 @@ def test_torchrun_two_processes_stay_in_sync(tmp_path, env, decoder):
         dist.destroy_process_group()
         print("DONE", dist_rank, flush=True)
         # Skip interpreter teardown: there, gloo's threads sometimes abort the process ("terminate
-        # called without an active exception", 2 CI runs of 3 in session 12), after the work is done.
+        # called without an active exception"), after the work is done.
         os._exit(0)
     """))
     # Generate the demos once, outside the two ranks.

@@ -585,8 +585,8 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     if world > 1:
         torch.distributed.barrier()
         # Free DDP's reducer (it holds the last gloo work) while the interpreter is alive: a
-        # reference cycle otherwise keeps it to shutdown. That alone did not stop gloo aborting at
-        # exit (CI, session 12): the console script's ranks also skip teardown (cli.entry).
+        # reference cycle otherwise keeps it to shutdown. Freeing it alone does not stop gloo aborting
+        # at exit: the console script's ranks also skip interpreter teardown (cli.entry).
         del model
         gc.collect()
     return final
