@@ -97,12 +97,13 @@ def test_episode_cap_raises():
 def test_demos_layout_and_dataset(reach_demos):
     root = reach_demos
     assert root.name == "reach-v3-n2-s0" and root.parent.name == "metaworld"
-    assert sorted(p.name for p in (root / "data" / "chunk-000").iterdir()) == ["episode_000000.parquet", "episode_000001.parquet"]
+    assert sorted(p.name for p in (root / "data" / "chunk-000").iterdir()) == ["file-000.parquet"]
     info = json.loads((root / "meta" / "info.json").read_text())
     assert info["total_episodes"] == 2 and info["features"]["observation.state"]["shape"] == [39]
     assert info["features"]["action"]["shape"] == [4] and info["fps"] == 80.0
-    assert json.loads((root / "meta" / "tasks.jsonl").read_text().splitlines()[0]) == {"task_index": 0, "task": "reach-v3"}
-    table = pq.read_table(root / "data" / "chunk-000" / "episode_000000.parquet")
+    assert info["codebase_version"] == "v3.0" and info["env"] == "metaworld"
+    assert pq.read_table(root / "meta" / "tasks.parquet")["__index_level_0__"].to_pylist() == ["reach-v3"]
+    table = pq.read_table(root / "data" / "chunk-000" / "file-000.parquet")
     for column in ("observation.state", "action", "episode_index", "frame_index", "timestamp", "task_index", "next.success", "next.reward"):
         assert column in table.column_names
     assert table["next.success"].to_pylist()[-1]
@@ -123,12 +124,12 @@ def test_demo_cache_from_before_the_seed_stride_is_regenerated(tmp_path):
     info_path = old / "meta" / "info.json"
     info = json.loads(info_path.read_text())
     assert info["source"]["first_layout"] == 1000
-    first = pq.read_table(old / "data" / "chunk-000" / "episode_000000.parquet")["observation.state"].to_pylist()[0]
+    first = pq.read_table(old / "data" / "chunk-000" / "file-000.parquet")["observation.state"].to_pylist()[0]
     del info["source"]["first_layout"]                  # as written when seed 1 began at layout 1
     info_path.write_text(json.dumps(info))
     fresh = generate_demos("metaworld/reach", 2, seed=1, cache_dir=tmp_path)
     assert json.loads((fresh / "meta" / "info.json").read_text())["source"]["first_layout"] == 1000
-    again = pq.read_table(fresh / "data" / "chunk-000" / "episode_000000.parquet")["observation.state"].to_pylist()[0]
+    again = pq.read_table(fresh / "data" / "chunk-000" / "file-000.parquet")["observation.state"].to_pylist()[0]
     assert again == first
     np.testing.assert_allclose(first, make_env("reach", seed=0).reset(seed=1000)[0], atol=1e-5)
     # seed 0's caches began at layout 0 under both rules: kept
@@ -136,7 +137,7 @@ def test_demo_cache_from_before_the_seed_stride_is_regenerated(tmp_path):
     info0 = json.loads((zero / "meta" / "info.json").read_text())
     del info0["source"]["first_layout"]
     (zero / "meta" / "info.json").write_text(json.dumps(info0))
-    episode = zero / "data" / "chunk-000" / "episode_000000.parquet"
+    episode = zero / "data" / "chunk-000" / "file-000.parquet"
     mtime = episode.stat().st_mtime_ns
     assert generate_demos("metaworld/reach", 2, seed=0, cache_dir=tmp_path) == zero
     assert episode.stat().st_mtime_ns == mtime
@@ -253,7 +254,7 @@ def test_load_dataset_rejects_nan_and_missing(tmp_path):
     with pytest.raises(ValueError, match="parquet"):
         load_dataset(tmp_path / "empty")
     _write_tiny(tmp_path / "ok", np.ones((5, 2)))
-    path = tmp_path / "ok" / "data" / "chunk-000" / "episode_000001.parquet"
+    path = tmp_path / "ok" / "data" / "chunk-000" / "file-000.parquet"
     pq.write_table(pq.read_table(path).drop(["action"]), path)
     with pytest.raises(ValueError, match="missing column.*'action'"):
         load_dataset(tmp_path / "ok")
@@ -261,15 +262,15 @@ def test_load_dataset_rejects_nan_and_missing(tmp_path):
 
 def test_empty_episode_file_is_named(tmp_path):
     _write_tiny(tmp_path / "ds", np.ones((5, 2)))
-    path = tmp_path / "ds" / "data" / "chunk-000" / "episode_000001.parquet"
+    path = tmp_path / "ds" / "data" / "chunk-000" / "file-000.parquet"
     pq.write_table(pq.read_table(path).slice(0, 0), path)        # the columns, no frames
-    with pytest.raises(ValueError, match=r"episode_000001\.parquet: expected an episode with at least one frame"):
+    with pytest.raises(ValueError, match=r"file-000\.parquet: expected an episode with at least one frame"):
         load_dataset(tmp_path / "ds")
 
 
 @pytest.mark.parametrize("name, content", [("stats.json", "{not json"), ("stats.json", '[1, 2]'),
                                            ("stats.json", '{"observation.state": {"mean": "abc", "std": 1, "min": 0, "max": 1}}'),
-                                           ("info.json", "\x00garbage"), ("tasks.jsonl", "not json\n")])
+                                           ("info.json", "\x00garbage"), ("tasks.parquet", "not parquet\n")])
 def test_garbage_metadata_names_the_file(tmp_path, name, content):
     _write_tiny(tmp_path / "ds", np.ones((5, 2)))
     (tmp_path / "ds" / "meta" / name).write_text(content)

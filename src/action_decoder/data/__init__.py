@@ -3,7 +3,8 @@
 from .chunks import ChunkDataset
 from .demos import cache_root, generate_demos, load_demos
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
-from .lerobot_format import load_dataset, write_episodes
+from .lerobot_format import load_dataset
+from .lerobot_write import write_episodes
 from .stats import STD_FLOOR, compute_stats, load_stats, save_stats
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""Scripted-expert demonstrations on Meta-World, cached on disk in LeRobot layout.
+"""Scripted-expert demonstrations on Meta-World, cached on disk as LeRobot v3.0 datasets.
 
 Only successful episodes are kept. An episode is recorded until ``POST_SUCCESS_STEPS``
 frames after the first success (or Meta-World's 500-step cap): the chunks that start
@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
-from .lerobot_format import load_dataset, write_episodes
+from .lerobot_format import load_dataset
+from .lerobot_write import write_episodes
 
 # The simulator (gymnasium, metaworld, mujoco: the [sim] extra) is imported inside the functions that
 # record demonstrations, so that `--dataset` training and `from action_decoder.data import ...` work
@@ -46,15 +47,61 @@ def cache_root() -> Path:
     return Path(os.environ.get(CACHE_ENV_VAR) or "~/.cache/action_decoder").expanduser()
 
 
-def _is_complete(path: Path, num_episodes: int, first_layout: int) -> bool:
-    """All episodes there, drawn from today's layouts (before SEED_STRIDE, seed s began at layout s)."""
+def _cache_state(path: Path, num_episodes: int, first_layout: int) -> str:
+    """``"complete"``: a v3.0 dataset with all episodes, drawn from today's layouts (before
+    SEED_STRIDE, seed s began at layout s); ``"v2.0"``: the same in the older per-episode layout
+    (converted in place); ``"missing"`` otherwise (no, partial or stale dataset: recorded anew)."""
     info = path / "meta" / "info.json"
     if not info.exists():
-        return False
+        return "missing"
     meta = json.loads(info.read_text())
     source = meta.get("source", {})
-    return (meta.get("total_episodes") == num_episodes
-            and source.get("first_layout", source.get("seed")) == first_layout)
+    if meta.get("total_episodes") != num_episodes or source.get("first_layout", source.get("seed")) != first_layout:
+        return "missing"
+    return {"v3.0": "complete", "v2.0": "v2.0"}.get(meta.get("codebase_version"), "missing")
+
+
+def _read_v20(path: Path) -> tuple[list[dict], list[str], float, dict]:
+    """Episodes, tasks, fps and extra info of a demonstration cache in the v2.0 layout this library
+    wrote before (one ``data/chunk-XXX/episode_XXXXXX.parquet`` per episode, jsonl metadata)."""
+    import pyarrow.parquet as pq
+
+    info = json.loads((path / "meta" / "info.json").read_text())
+    lines = lambda name: [json.loads(x) for x in (path / "meta" / name).read_text().splitlines() if x.strip()]
+    tasks = [d["task"] for d in sorted(lines("tasks.jsonl"), key=lambda d: d["task_index"])]
+    seeds = {d["episode_index"]: d.get("seed") for d in lines("episodes.jsonl")}
+    more = info["features"].get(CONTINUATION, {}).get("shape")                  # [K, D]
+    episodes = []
+    for file in sorted((path / "data").glob("chunk-*/episode_*.parquet")):
+        t = pq.read_table(file)
+        vec = lambda k: np.asarray(t[k].to_pylist(), np.float32)                    # [L, W]
+        ep = {STATE: vec(STATE), ACTION: vec(ACTION), "task_index": int(t["task_index"][0].as_py()),
+              "next.reward": t["next.reward"].to_numpy(), "next.success": t["next.success"].to_numpy(zero_copy_only=False)}
+        if more is not None:
+            ep[CONTINUATION] = vec(CONTINUATION).reshape(len(ep[ACTION]), *more)   # [L, K, D]
+        if seeds.get(int(t["episode_index"][0].as_py())) is not None:
+            ep["seed"] = seeds[int(t["episode_index"][0].as_py())]
+        episodes.append(ep)
+    extra = {k: info[k] for k in ("robot_type", "source") if k in info}
+    return episodes, tasks, info["fps"], {**extra, "env": "metaworld"}
+
+
+def _swap_into_place(tmp: Path, final: Path) -> None:
+    """Move the finished dataset ``tmp`` to ``final``, replacing what is there; a process that
+    finished the same dataset first wins and ``tmp`` is dropped."""
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
+        try:
+            os.rename(final, old / final.name)
+        except OSError:
+            pass
+    try:
+        os.rename(tmp, final)
+    except OSError:  # another process finished the same dataset first
+        shutil.rmtree(tmp)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
@@ -99,22 +146,12 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
     return {**episode, CONTINUATION: np.stack(continuations)} if continuations else episode
 
 
-def generate_demos(
-    task: str,
-    num_episodes: int,
-    seed: int = 0,
-    max_attempts_factor: float = 3.0,
-    cache_dir: str | Path | None = None,
-    action_noise: float = 0.0,
-) -> Path:
-    """Directory holding ``num_episodes`` successful expert episodes of ``task``, recorded with
-    ``action_noise`` (std of the Gaussian added to each executed action; 0: clean rollouts).
-
-    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>]`` when complete; otherwise writes it
-    into a temporary sibling and renames it into place (concurrent runs never see a
-    partial dataset). Raises RuntimeError if ``ceil(N * max_attempts_factor)`` attempts
-    do not yield N successes.
-    """
+def record_episodes(
+    task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0
+) -> tuple[list[dict], float, dict]:
+    """Roll out the scripted expert of ``task`` until ``num_episodes`` succeed: the episodes (the
+    dicts ``write_episodes`` takes, ``task_index`` 0), the env's fps and a ``source`` record (env,
+    versions, seed, first layout, attempts, expert success rate, noise)."""
     from ..envs.metaworld_tasks import SEED_STRIDE, canonical_task, demo_seeds, expert_policy, make_env
 
     name = canonical_task(task)
@@ -125,17 +162,12 @@ def generate_demos(
     if not (isinstance(action_noise, (int, float)) and 0 <= action_noise <= 1):
         raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
                          f"got {action_noise!r}")
-    suffix = f"-dart{action_noise:g}" if action_noise > 0 else ""
-    final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
     attempts = math.ceil(num_episodes * max_attempts_factor)
     if attempts > SEED_STRIDE:
         raise ValueError(f"num_episodes: expected at most {int(SEED_STRIDE // max_attempts_factor)} demonstrations "
                          f"per seed ({max_attempts_factor:g} attempts each within the seed's {SEED_STRIDE} layouts), "
                          f"got {num_episodes}")
     seeds = demo_seeds(seed, attempts)
-    if _is_complete(final, num_episodes, seeds[0]):
-        return final
-
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     for attempt, layout_seed in enumerate(seeds, start=1):
         episode = _rollout(env, expert, layout_seed, action_noise)
@@ -150,20 +182,72 @@ def generate_demos(
             f"the {num_episodes} demonstrations asked for; raise max_attempts_factor"
             + (f" or lower the action noise ({action_noise})" if action_noise > 0 else "")
         )
-
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
               "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise}
-    write_episodes(tmp, episodes, [name], round(1.0 / env.unwrapped.dt, 6), {"robot_type": "sawyer", "source": source})
-    if final.exists() and not _is_complete(final, num_episodes, seeds[0]):
-        shutil.rmtree(final)  # a stale or partial cache entry
-    try:
-        os.rename(tmp, final)
-    except OSError:  # another process finished the same dataset first
-        shutil.rmtree(tmp)
+    return episodes, round(1.0 / env.unwrapped.dt, 6), source
+
+
+def generate_demos(
+    task: str,
+    num_episodes: int,
+    seed: int = 0,
+    max_attempts_factor: float = 3.0,
+    cache_dir: str | Path | None = None,
+    action_noise: float = 0.0,
+) -> Path:
+    """Directory holding ``num_episodes`` successful expert episodes of ``task`` as a LeRobot v3.0
+    dataset, recorded with ``action_noise`` (std of the Gaussian added to each executed action;
+    0: clean rollouts).
+
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>]`` when complete. A complete cache in
+    the older v2.0 layout is converted in place (same episodes, no simulator run), saying so in one
+    line; anything else is recorded anew. New datasets are written into a temporary sibling and
+    renamed into place (concurrent runs never see a partial dataset). Raises RuntimeError if
+    ``ceil(N * max_attempts_factor)`` attempts do not yield N successes.
+    """
+    from ..envs.metaworld_tasks import canonical_task, demo_seeds
+
+    name = canonical_task(task)
+    if not (isinstance(action_noise, (int, float)) and 0 <= action_noise <= 1):
+        raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
+                         f"got {action_noise!r}")
+    suffix = f"-dart{action_noise:g}" if action_noise > 0 else ""
+    final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
+    state = _cache_state(final, num_episodes, demo_seeds(seed, 1)[0]) if isinstance(num_episodes, (int, np.integer)) else "missing"
+    if state == "complete":
+        return final
+    if state == "v2.0":
+        episodes, tasks, fps, extra = _read_v20(final)
+        print(f"demonstrations: converting the cache {final} from LeRobot layout v2.0 to v3.0", flush=True)
+    else:
+        episodes, fps, source = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise)
+        tasks, extra = [name], {"robot_type": "sawyer", "env": "metaworld", "source": source}
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    write_episodes(tmp, episodes, tasks, fps, extra)
+    _swap_into_place(tmp, final)
     return final
+
+
+def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int = 0, action_noise: float = 0.0,
+                 max_attempts_factor: float = 3.0) -> Path:
+    """Record ``num_episodes`` expert demonstrations of every task in ``spec`` (``metaworld/<task>``,
+    comma-separated or a group) into one LeRobot v3.0 dataset at ``output_dir``, with the
+    Meta-World task names as task strings (``task_index`` in the order of ``resolve_tasks``) and
+    ``"env": "metaworld"`` in ``info.json``. ``output_dir`` must be new or empty: an existing
+    dataset is never overwritten."""
+    from ..envs.metaworld_tasks import resolve_tasks
+
+    out = Path(output_dir).expanduser()
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--output-dir: expected a new or empty directory, got {out} (not empty)")
+    names, episodes, sources = resolve_tasks(spec), [], {}
+    for i, name in enumerate(names):
+        eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise)
+        episodes += [{**ep, "task_index": i} for ep in eps]
+    source = sources[names[0]] if len(names) == 1 else {"env": "metaworld", "tasks": sources}
+    return write_episodes(out, episodes, names, fps, {"robot_type": "sawyer", "env": "metaworld", "source": source})
 
 
 def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0) -> EpisodeDataset:

@@ -1,4 +1,4 @@
-"""Reading and writing datasets in LeRobot's on-disk layout (v2.0 style):
+"""Reading datasets in LeRobot's on-disk layout (v2.0 style; ``lerobot_write`` writes v3.0):
 
     <root>/data/chunk-000/episode_000000.parquet   one file per episode
     <root>/meta/info.json                          fps, features and shapes, totals
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -22,76 +21,9 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset
-from .stats import compute_stats, load_stats, read_json, save_stats
+from .stats import load_stats, read_json
 
 REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
-CHUNK_SIZE = 1000
-DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
-SCALARS = {"episode_index": "int64", "frame_index": "int64", "timestamp": "float32", "index": "int64",
-           "task_index": "int64", "next.reward": "float32", "next.success": "bool", "next.done": "bool"}
-
-
-def _fixed_lists(values: np.ndarray) -> pa.FixedSizeListArray:
-    values = np.asarray(values, dtype=np.float32)
-    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
-
-
-def write_episodes(
-    root: str | Path,
-    episodes: Sequence[dict[str, np.ndarray]],
-    tasks: Sequence[str],
-    fps: float,
-    info_extra: dict | None = None,
-) -> Path:
-    """Write episodes (dicts with ``observation.state [L, S]``, ``action [L, D]``,
-    ``task_index`` (int), ``next.reward [L]``, ``next.success [L]``, optional ``seed`` and
-    ``action.continuation [L, K, D]``) under ``root``."""
-    root = Path(root)
-    (root / "meta").mkdir(parents=True, exist_ok=True)
-    index = 0
-    for e, ep in enumerate(episodes):
-        length = len(ep[ACTION])
-        columns = {
-            **{k: _fixed_lists(ep[k]) for k in (STATE, ACTION)},
-            "episode_index": np.full(length, e), "frame_index": np.arange(length),
-            "timestamp": np.arange(length, dtype=np.float32) / np.float32(fps),
-            "index": np.arange(index, index + length), "task_index": np.full(length, int(ep["task_index"])),
-            "next.reward": np.asarray(ep["next.reward"], np.float32),
-            "next.success": np.asarray(ep["next.success"], bool), "next.done": np.arange(length) == length - 1,
-        }
-        if CONTINUATION in ep:
-            columns[CONTINUATION] = _fixed_lists(ep[CONTINUATION].reshape(length, -1))
-        path = root / DATA_PATH.format(episode_chunk=e // CHUNK_SIZE, episode_index=e)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(pa.table(columns), path)
-        index += length
-
-    state_dim, action_dim = episodes[0][STATE].shape[1], episodes[0][ACTION].shape[1]
-    features = {
-        STATE: {"dtype": "float32", "shape": [state_dim], "names": None},
-        ACTION: {"dtype": "float32", "shape": [action_dim], "names": None},
-        **{k: {"dtype": v, "shape": [1], "names": None} for k, v in SCALARS.items()},
-    }
-    if CONTINUATION in episodes[0]:
-        features[CONTINUATION] = {"dtype": "float32", "shape": list(episodes[0][CONTINUATION].shape[1:]), "names": None}
-    info = {
-        "codebase_version": "v2.0", "fps": fps, "total_episodes": len(episodes), "total_frames": index,
-        "total_tasks": len(tasks), "total_chunks": (len(episodes) - 1) // CHUNK_SIZE + 1, "chunks_size": CHUNK_SIZE,
-        "splits": {"train": f"0:{len(episodes)}"}, "data_path": DATA_PATH, "video_path": None,
-        "features": features, **(info_extra or {}),
-    }
-    episode_lines = [
-        {"episode_index": e, "tasks": [tasks[int(ep["task_index"])]], "length": len(ep[ACTION]),
-         **({"seed": int(ep["seed"])} if "seed" in ep else {})}
-        for e, ep in enumerate(episodes)
-    ]
-    (root / "meta" / "tasks.jsonl").write_text("".join(json.dumps({"task_index": i, "task": t}) + "\n" for i, t in enumerate(tasks)))
-    (root / "meta" / "episodes.jsonl").write_text("".join(json.dumps(line) + "\n" for line in episode_lines))
-    stats = compute_stats({STATE: np.concatenate([ep[STATE] for ep in episodes]),
-                           ACTION: np.concatenate([ep[ACTION] for ep in episodes])})
-    save_stats(stats, root / "meta" / "stats.json")
-    (root / "meta" / "info.json").write_text(json.dumps(info, indent=2))  # last: marks the dataset complete
-    return root
 
 
 def _matrix(table: pa.Table, name: str, path: Path) -> np.ndarray:
@@ -104,11 +36,21 @@ def _matrix(table: pa.Table, name: str, path: Path) -> np.ndarray:
             f"{path}: column {name!r} expected the same number of values in every frame, "
             f"got lengths {sorted(set(widths.tolist()))} and {column.null_count} nulls"
         )
-    return column.flatten().to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(column), -1)
+    values = column.flatten()
+    while pa.types.is_fixed_size_list(values.type):   # [K, D] per frame (v3.0 action.continuation)
+        values = values.flatten()
+    return values.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(column), -1)
 
 
 def _read_tasks(root: Path, count: int) -> list[str]:
     path = root / "meta" / "tasks.jsonl"
+    if (root / "meta" / "tasks.parquet").exists():   # v3.0: task strings are the pandas index, in task_index order
+        try:
+            table = pq.read_table(root / "meta" / "tasks.parquet")
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(f"{root / 'meta' / 'tasks.parquet'}: expected a parquet table of task strings, "
+                             f"got unreadable content ({err})") from None
+        return [str(t) for t in table.sort_by("task_index")["__index_level_0__"].to_pylist()]
     if not path.exists():
         return [f"task_{i}" for i in range(count)]
     try:
