@@ -39,6 +39,10 @@ def test_rewriting_lerobots_own_dataset_reproduces_its_files(tmp_path):
     assert sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()) == \
         sorted(str(p.relative_to(FIXTURE)) for p in FIXTURE.rglob("*") if p.is_file())
     assert json.loads((root / "meta" / "info.json").read_text()) == info
+    assert type(json.loads((root / "meta" / "info.json").read_text())["fps"]) is int       # as LeRobot writes it
+    for path in (DATA, EPISODES, "meta/tasks.parquet"):     # types with their list field names ("element")
+        assert pq.read_schema(root / path).to_string(show_schema_metadata=False) == \
+            pq.read_schema(FIXTURE / path).to_string(show_schema_metadata=False), path
 
     ours, theirs = pq.read_table(root / DATA), pq.read_table(FIXTURE / DATA)
     assert ours.equals(theirs)                                  # same columns, types, field names and values
