@@ -198,6 +198,26 @@ def test_a_v20_demo_cache_is_converted_without_the_simulator(tmp_path, monkeypat
     assert capsys.readouterr().out == ""                                             # converted once
 
 
+def test_a_v20_demo_cache_that_cannot_be_read_is_recorded_anew(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("metaworld")
+    from action_decoder.data import demos
+
+    episodes = [{k: v for k, v in ep.items() if k != "task_index"}
+                for ep in _episodes(np.random.default_rng(4), [6, 9], state=39, action=4, k=3)]
+    cache = tmp_path / "metaworld" / "reach-v3-n2-s0-dart0.1"
+    source = {"env": "metaworld", "task": "reach-v3", "seed": 0, "first_layout": 0, "action_noise": 0.1}
+    _write_v20_cache(cache, episodes, "reach-v3", 80.0, source)
+    (cache / "data" / "chunk-000" / "episode_000001.parquet").write_bytes(b"PAR1 truncated")
+    fresh = [{**ep, "task_index": 0, "seed": 7 + i} for i, ep in enumerate(episodes)]
+    monkeypatch.setattr(demos, "record_episodes", lambda *a, **k: (fresh, 80.0, {**source, "attempts": 2}))
+
+    assert demos.generate_demos("metaworld/reach", 2, seed=0, cache_dir=tmp_path, action_noise=0.1) == cache
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and "cannot be converted" in out and "recording it anew" in out
+    assert json.loads((cache / "meta" / "info.json").read_text())["source"]["attempts"] == 2
+    assert pq.read_table(cache / EPISODES)["seed"].to_pylist() == [7, 8]
+
+
 def test_record_cli_writes_a_lerobot_dataset(tmp_path, capsys):
     pytest.importorskip("metaworld")
     from action_decoder.cli import main

@@ -1,7 +1,7 @@
 """Demonstrations, LeRobot-layout datasets, chunked training samples and normalisation statistics."""
 
 from .chunks import ChunkDataset
-from .demos import cache_root, generate_demos, load_demos
+from .demos import cache_root, generate_demos, load_demos, record_demos
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
 from .lerobot_write import write_episodes
@@ -21,6 +21,7 @@ __all__ = [
     "load_dataset",
     "load_demos",
     "load_stats",
+    "record_demos",
     "save_stats",
     "write_episodes",
 ]

@@ -218,9 +218,14 @@ def generate_demos(
     if state == "complete":
         return final
     if state == "v2.0":
-        episodes, tasks, fps, extra = _read_v20(final)
-        print(f"demonstrations: converting the cache {final} from LeRobot layout v2.0 to v3.0", flush=True)
-    else:
+        try:
+            episodes, tasks, fps, extra = _read_v20(final)
+            print(f"demonstrations: converting the cache {final} from LeRobot layout v2.0 to v3.0", flush=True)
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as err:   # pyarrow's errors are ValueErrors
+            print(f"demonstrations: the v2.0 cache {final} cannot be converted ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+                  f"recording it anew", flush=True)
+            state = "missing"
+    if state != "v2.0":
         episodes, fps, source = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise)
         tasks, extra = [name], {"robot_type": "sawyer", "env": "metaworld", "source": source}
     final.parent.mkdir(parents=True, exist_ok=True)
