@@ -196,7 +196,7 @@ def _tiny_dataset(root, seed=0, scale=1.0):
     rng = np.random.default_rng(seed)
     episodes = [{"observation.state": rng.normal(size=(30, 6)) * scale, "action": rng.uniform(-1, 1, (30, 2)),
                  "task_index": 0, "next.reward": np.zeros(30), "next.success": np.zeros(30, bool)} for _ in range(2)]
-    write_episodes(root, episodes, ["mine"], 10)
+    write_episodes(root, episodes, ["mine"], 10, overwrite=True)
     return str(root)
 
 

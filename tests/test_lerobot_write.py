@@ -137,12 +137,29 @@ def test_refuses_a_non_empty_directory_and_a_bad_fps(tmp_path):
     episodes = _episodes(np.random.default_rng(2), [4, 4])
     (tmp_path / "ds").mkdir()
     (tmp_path / "ds" / "notes.txt").write_text("mine")
-    with pytest.raises(ValueError, match=r"expected an empty or new directory, got .*ds \(not empty\)"):
+    with pytest.raises(ValueError, match=r"expected an empty or new directory, got .*ds \(not empty"):
         write_episodes(tmp_path / "ds", episodes, ["a", "b"], 10)
     assert (tmp_path / "ds" / "notes.txt").read_text() == "mine"
     for fps in (0, -5, float("nan"), "10"):
         with pytest.raises(ValueError, match="fps expected a positive number"):
             write_episodes(tmp_path / "new", episodes, ["a", "b"], fps)
+
+
+def test_overwrite_replaces_a_dataset_whole_and_nothing_else(tmp_path):
+    rng = np.random.default_rng(5)
+    root = write_episodes(tmp_path / "ds", _episodes(rng, [9, 9, 9]), ["a", "b"], 10, data_file_size_in_mb=1e-3)
+    assert len(list((root / "data").rglob("*.parquet"))) > 1
+    with pytest.raises(ValueError, match="overwrite=True replaces a dataset"):
+        write_episodes(root, _episodes(rng, [4]), ["c"], 10)
+    write_episodes(root, _episodes(rng, [4], tasks=1), ["c"], 10, overwrite=True)
+    assert [p.name for p in (root / "data").rglob("*.parquet")] == ["file-000.parquet"]     # no stale file
+    ds = load_dataset(root)
+    assert ds.tasks == ["c"] and ds.episode_lengths.tolist() == [4] and not list(tmp_path.glob(".*"))
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    with pytest.raises(ValueError, match="expected an empty or new directory"):
+        write_episodes(tmp_path / "mine", _episodes(rng, [4]), ["a", "b"], 10, overwrite=True)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
 
 def _write_v20_cache(root, episodes, task, fps, source):

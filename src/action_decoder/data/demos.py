@@ -23,7 +23,6 @@ import importlib.metadata
 import json
 import math
 import os
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import numpy as np
 
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
-from .lerobot_write import write_episodes
+from .lerobot_write import replace_dir, write_episodes
 
 # The simulator (gymnasium, metaworld, mujoco: the [sim] extra) is imported inside the functions that
 # record demonstrations, so that `--dataset` training and `from action_decoder.data import ...` work
@@ -84,24 +83,6 @@ def _read_v20(path: Path) -> tuple[list[dict], list[str], float, dict]:
         episodes.append(ep)
     extra = {k: info[k] for k in ("robot_type", "source") if k in info}
     return episodes, tasks, info["fps"], {**extra, "env": "metaworld"}
-
-
-def _swap_into_place(tmp: Path, final: Path) -> None:
-    """Move the finished dataset ``tmp`` to ``final``, replacing what is there; a process that
-    finished the same dataset first wins and ``tmp`` is dropped."""
-    old = None
-    if final.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
-        try:
-            os.rename(final, old / final.name)
-        except OSError:
-            pass
-    try:
-        os.rename(tmp, final)
-    except OSError:  # another process finished the same dataset first
-        shutil.rmtree(tmp)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
@@ -231,7 +212,7 @@ def generate_demos(
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
     write_episodes(tmp, episodes, tasks, fps, extra)
-    _swap_into_place(tmp, final)
+    replace_dir(tmp, final)
     return final
 
 

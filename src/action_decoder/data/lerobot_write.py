@@ -23,7 +23,9 @@ adds its own epsilon when normalising, and this library's reader floors the std 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -124,6 +126,7 @@ def write_episodes(
     info_extra: dict | None = None,
     names: dict[str, list[str]] | None = None,
     data_file_size_in_mb: float = DATA_FILE_SIZE_IN_MB,
+    overwrite: bool = False,
 ) -> Path:
     """Write ``episodes`` as a LeRobot v3.0 dataset under ``root`` and return ``root``.
 
@@ -133,13 +136,24 @@ def write_episodes(
     Without ``next.reward``/``next.success`` those columns and ``next.done`` are left out.
     ``info_extra`` is merged into ``info.json`` (e.g. ``{"env": "metaworld", "robot_type": ...}``);
     ``names`` gives per-dimension names of vector features (e.g. ``{"action": ["dx", "dy", "grip"]}``).
-    Episodes are packed into data files of about ``data_file_size_in_mb`` each. ``root`` must not
-    hold anything; ``info.json`` is written last, so a dataset with it is complete.
+    Episodes are packed into data files of about ``data_file_size_in_mb`` each. ``info.json`` is
+    written last, so a dataset with it is complete.
+
+    ``root`` must be new or empty, as for LeRobot's own ``create``: a dataset is never replaced by
+    accident. With ``overwrite=True`` a directory holding a dataset (``meta/info.json``) is replaced
+    as a whole (written beside it, then swapped in, so no stale file of the old one survives);
+    any other non-empty directory is still refused.
     """
     root = Path(root)
     _check(episodes, list(tasks), fps)
+    if overwrite and (root / "meta" / "info.json").is_file():
+        tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.", dir=root.parent))
+        write_episodes(tmp, episodes, tasks, fps, info_extra, names, data_file_size_in_mb)
+        replace_dir(tmp, root)
+        return root
     if root.exists() and (not root.is_dir() or any(root.iterdir())):
-        raise ValueError(f"write_episodes: expected an empty or new directory, got {root} (not empty)")
+        raise ValueError(f"write_episodes: expected an empty or new directory, got {root} (not empty"
+                         f"{'' if overwrite else '; overwrite=True replaces a dataset'})")
     fps = int(fps) if float(fps).is_integer() else float(fps)
     first = episodes[0]
     columns = _episode_columns(first, 0, 0, fps)
@@ -202,6 +216,24 @@ def write_episodes(
         shutil.rmtree(root, ignore_errors=True)       # no half-written dataset left behind
         raise
     return root
+
+
+def replace_dir(new: Path, final: Path) -> None:
+    """Move the finished directory ``new`` to ``final``, replacing what is there. If another process
+    puts its own ``final`` in place first, ``new`` is dropped."""
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
+        try:
+            os.rename(final, old / final.name)
+        except OSError:
+            pass
+    try:
+        os.rename(new, final)
+    except OSError:
+        shutil.rmtree(new)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def _write_episode_rows(root: Path, rows: list[dict], features: dict) -> None:
