@@ -122,7 +122,7 @@ def sac_update(policy, reference, q, q_target, temperature: Temperature, optimiz
             lp_ref = rescore_chain(reference, batch, chain, res.grid)
         kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
         actor_loss = actor_loss + cfg.kl_coef * kl
-        stats["kl_bc"] = float(kl.detach())
+        stats["kl_bc_update"] = float(kl.detach())
     opt_actor = optimizers["actor"]
     opt_actor.zero_grad(set_to_none=True)
     actor_loss.backward()
