@@ -303,13 +303,18 @@ def test_last_step_log_prob_keeps_only_executed_rows(reduce):
                               res.step_log_probs[:, -1], atol=1e-3)
 
 
+@pytest.fixture(scope="module")
+def demo_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
 @pytest.mark.parametrize("decoder", ["mean_flow", "flow_matching"])
-def test_default_path_train_then_finetune(tmp_path, monkeypatch, decoder):
+def test_default_path_train_then_finetune(tmp_path, monkeypatch, demo_cache, decoder):
     """What a user runs first: `train` with its defaults for the decoder (MeanFlow: the clean-chunk
     head), then `finetune`. Its first PPO update must stay a bounded step: finite logged KLs and an
     approximate KL to the rollout policy of a few nats at most (the clean-chunk head's last
     denoising step once made it overflow to inf and stopped the run at iteration 1)."""
-    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(demo_cache))
     bc, out = tmp_path / "bc", tmp_path / "ft"
     assert main(["train", "--task", "metaworld/drawer-close", "--demos", "3", "--decoder", decoder, "--steps", "100",
                  "--output-dir", str(bc), "--eval-episodes", "0", "--no-progress"]) == 0
