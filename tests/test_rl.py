@@ -14,12 +14,12 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, ExploringSigma, 
                             velocity_from_meanflow)
 from action_decoder.envs import make_env
 from action_decoder.cli import main
-from action_decoder.rl.critics import ValueNet
+from action_decoder.rl.critics import TwinQ, ValueNet
 from action_decoder.rl.finetune import FinetuneConfig, chain_actor, shaping
 from action_decoder.rl import ppo
 from action_decoder.rl.ppo import gae, group_advantages, ppo_update
 from action_decoder.rl.rollout import collect
-from action_decoder.rl.sac import Temperature, actor_sample
+from action_decoder.rl.sac import ReplayBuffer, Temperature, actor_sample, make_target, sac_update
 from action_decoder.rl.sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
 
 S, D, H = 39, 4, 4
@@ -372,3 +372,31 @@ def test_approx_kl_stays_finite_where_a_step_density_collapses():
     stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
     assert stats["approx_kl"] == pytest.approx(199.0 / (12 * 5), rel=1e-3)
     assert stats["ratio_min"] == 0.0 and "kl_bc_update" not in stats
+
+
+def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
+    """SAC's actor loss (K network calls per row) is back-propagated per micro-batch of
+    MICROBATCH_ROW_CALLS // sde_steps rows; the update still uses the whole batch."""
+    monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", 8)                 # 8 // 4 steps = 2 rows
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
+    reference = finetune_policy(_bc(), sigma=0.5, learn_sigma=False, steps=4).requires_grad_(False)
+    gen = torch.Generator().manual_seed(0)
+    buffer = ReplayBuffer(16)
+    buffer.add({"state": torch.randn(16, S, generator=gen), "progress": torch.rand(16, generator=gen),
+                "actions": torch.rand(16, H, D, generator=gen) * 2 - 1, "reward": torch.rand(16, generator=gen),
+                "next_state": torch.randn(16, S, generator=gen), "next_progress": torch.rand(16, generator=gen),
+                "done": torch.zeros(16, dtype=torch.bool)})
+    q, temperature = TwinQ(S, H * D), Temperature(0.01)
+    optimizers = {"q": torch.optim.Adam(q.parameters(), lr=1e-3), "alpha": torch.optim.Adam(temperature.parameters()),
+                  "actor": torch.optim.Adam(policy.parameters(), lr=1e-3)}
+    cfg = SimpleNamespace(sac_batch_size=6, sde_steps=4, gamma=0.99, grad_clip=1.0, kl_coef=0.1, trained_steps=4,
+                          alpha_lr=1e-2, tau=0.005)
+    rows, forward = [], policy.model.forward
+    monkeypatch.setattr(policy.model, "forward",
+                        lambda x, *a, **k: rows.append(x.shape[0] * torch.is_grad_enabled()) or forward(x, *a, **k))
+    before = [p.detach().clone() for p in policy.model.parameters()]
+    stats = sac_update(policy, reference, q, make_target(q), temperature, optimizers, buffer, lambda st: {"state": st},
+                       cfg, gen)
+    assert max(rows) == 2 and rows.count(2) == 3 * 2 * 4              # 3 micro-batches × (sample + re-score) × K
+    assert all(math.isfinite(v) for v in stats.values()) and {"kl_bc_update", "actor_loss", "q"} <= stats.keys()
+    assert any(not torch.equal(p, b) for p, b in zip(policy.model.parameters(), before))
