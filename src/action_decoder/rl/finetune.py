@@ -325,6 +325,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
             logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
                                                 rec["grid"][0], cfg.logprob_reduce, n_exec)
                                   for i in range(0, len(rewards), 512)])
+        # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
+        # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
         kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
         norm = policy.normalizers["state"].normalize
         if cfg.algo == "ppo":
@@ -351,7 +353,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
         row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
                "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), "sigma_mult": mult, "kl_bc": kl_rollout, **stats,
+               "decisions": len(rewards), "sigma_mult": mult, **stats, "kl_bc": kl_rollout,
                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
