@@ -400,3 +400,16 @@ def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
     assert max(rows) == 2 and rows.count(2) == 3 * 2 * 4              # 3 micro-batches × (sample + re-score) × K
     assert all(math.isfinite(v) for v in stats.values()) and {"kl_bc_update", "actor_loss", "q"} <= stats.keys()
     assert any(not torch.equal(p, b) for p, b in zip(policy.model.parameters(), before))
+
+
+def test_finetune_refuses_an_output_dir_in_use(tmp_path):
+    """Two fine-tuning runs on one directory: the second stops at once, before loading anything."""
+    from action_decoder.rl.finetune import finetune
+    from action_decoder.train import run_dir_lock
+
+    out = tmp_path / "ft"
+    with run_dir_lock(out):
+        with pytest.raises(ValueError, match=r"--output-dir: .* is in use by another run"):
+            finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))
+    with pytest.raises(FileNotFoundError):      # lock released: the run gets as far as the checkpoint
+        finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))

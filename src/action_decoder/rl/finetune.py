@@ -22,7 +22,7 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save_final, task_context,
+from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final, task_context,
                      write_checkpoint)
 from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
@@ -231,11 +231,17 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
 
 
 def finetune(cfg: FinetuneConfig) -> Path:
-    """Run the fine-tuning; returns the `final/` checkpoint directory."""
+    """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
+    locked for the run (`train.run_dir_lock`): a second run on it stops at once."""
+    _check(cfg)
+    with run_dir_lock(Path(cfg.output_dir)):
+        return _finetune(cfg)
+
+
+def _finetune(cfg: FinetuneConfig) -> Path:
     from ..envs import evaluate, make_env
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
-    _check(cfg)
     out = Path(cfg.output_dir)
     bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
     trained = list(bc.config.extra.get("tasks") or [])
