@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     from .evaluate import EvalConfig, run_eval
     from .rl import FinetuneConfig, finetune
-    from .train import TrainConfig, train
+    from .train import TrainConfig, closed_loop_env, train
 
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
@@ -53,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(cfg, TrainConfig):
             final = train(cfg)
             rank = int(os.environ.get("RANK", 0))
-            if cfg.eval_episodes and rank == 0:
+            # Closed loop only where the dataset names an environment the library runs; otherwise
+            # training reported its held-out validation (train.load_training_data).
+            if cfg.eval_episodes and rank == 0 and closed_loop_env(cfg):
                 run_eval(EvalConfig(checkpoint=str(final), episodes=cfg.eval_episodes, seed=cfg.seed,
                                     device="cpu"))
         elif isinstance(cfg, FinetuneConfig):
