@@ -247,7 +247,7 @@ def bench_peers(bc: BenchConfig, size: NetSize, clock: Clock) -> dict:
     # dx/dsigma = noise − data = −v_ours, and t_ours = 1 − sigma = 1 − timestep/N.
     fm_sched = diffusers.FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=1.0)
     n_train = fm_sched.config.num_train_timesteps
-    sigmas = np.linspace(1.0, 0.0, K + 1)[:-1].tolist()    # uniform grid = our default grid
+    sigmas = np.linspace(1.0, 0.0, K + 1)[:-1]     # uniform grid = our default grid (an array: diffusers 0.30)
 
     def peer_fm():
         fm_sched.set_timesteps(sigmas=sigmas, device=device)
