@@ -96,14 +96,16 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=128)
-    a, rest = p.parse_known_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    cut = argv.index("--") if "--" in argv else len(argv)          # after "--": the CLI's own arguments
+    a, rest = p.parse_args(argv[:cut]), argv[cut + 1:]
     torch.set_num_threads(1)
     use_norm(a.norm)
     if a.what == "synthetic":
         print(json.dumps({"norm": a.norm, **synthetic(a.seed, a.steps, a.batch)}), flush=True)
         return 0
     from action_decoder.cli import main as cli_main
-    return cli_main([x for x in rest if x != "--"])
+    return cli_main(rest)
 
 
 if __name__ == "__main__":
