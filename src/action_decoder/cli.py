@@ -6,7 +6,7 @@ import os
 import sys
 
 
-SIM_MODULES = ("gymnasium", "metaworld", "mujoco", "pyarrow")
+SIM_MODULES = ("gymnasium", "metaworld", "mujoco")
 
 
 def check_device(name: str, option: str = "--device") -> None:
@@ -70,8 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as err:
         if err.name not in SIM_MODULES:
             raise
-        print(f"action-decoder: error: {err.name} is not installed; the simulator and dataset readers come "
-              f"with: pip install \"action-decoder[sim]\"", file=sys.stderr)
+        print(f"action-decoder: error: {err.name} is not installed; the Meta-World simulator comes with: "
+              f"pip install \"action-decoder[sim]\"", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("action-decoder: interrupted; continue with --resume", file=sys.stderr)
