@@ -15,7 +15,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks and few rounds (smoke test)")
-    parser.add_argument("--out", default="docs/benchmarks", help="where README.md, results.json, the plot go")
+    parser.add_argument("--out", default=None,
+                        help="where README.md, results.json, the plot go (default: docs/benchmarks for the full "
+                             "run; outputs/benchmarks-quick for --quick/--tiny, so they never overwrite "
+                             "the committed tables)")
     parser.add_argument("--quality-dir", default=None,
                         help="directory searched (recursively) for eval JSON files (action-decoder eval)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (CUDA events on a GPU)")
@@ -31,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     from .suite import BenchConfig, run_suite
 
     mode = "tiny" if args.tiny else ("quick" if args.quick else "default")
-    cfg = BenchConfig.preset(mode, device=args.device, out=args.out, quality_dir=args.quality_dir,
+    out = {} if args.out is None else {"out": args.out}
+    cfg = BenchConfig.preset(mode, device=args.device, quality_dir=args.quality_dir, **out,
                              sections=tuple(s.strip() for s in args.sections.split(",") if s.strip()),
                              plot=not args.no_plot)
     run_suite(cfg)

@@ -20,7 +20,7 @@ from the repository root with:
 
 ```bash
 OMP_NUM_THREADS=1 python -m benchmarks            # default, < 30 min on one core
-OMP_NUM_THREADS=1 python -m benchmarks --quick    # < 3 min
+OMP_NUM_THREADS=1 python -m benchmarks --quick    # < 3 min, into outputs/benchmarks-quick/ unless --out
 ```
 
 """

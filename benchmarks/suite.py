@@ -47,6 +47,11 @@ class NetSize:
                 f"{self.num_attention_heads}/{self.num_key_value_heads} heads, H=16, D=4, state 39")
 
 
+# Where each mode writes unless told (--out): a quick or tiny run is a smoke check whose
+# numbers must not replace the committed tables of docs/benchmarks/.
+OUT_DIRS = {"default": "docs/benchmarks", "quick": "outputs/benchmarks-quick", "tiny": "outputs/benchmarks-quick"}
+
+
 @dataclass
 class BenchConfig:
     mode: str = "default"
@@ -59,7 +64,7 @@ class BenchConfig:
     warmup: int = 3
     latency_reps: int = 20
     device: str = "cpu"
-    out: str = "docs/benchmarks"
+    out: str = "docs/benchmarks"         # preset(): only the full run writes the committed tables
     quality_dir: Optional[str] = None
     sections: Tuple[str, ...] = SECTIONS
     plot: bool = True
@@ -82,7 +87,7 @@ class BenchConfig:
         bad = set(kw.get("sections", ())) - set(SECTIONS)
         if bad:
             raise ValueError(f"sections: unknown {sorted(bad)}; expected a subset of {list(SECTIONS)}")
-        return dataclasses.replace(cfg, **kw)
+        return dataclasses.replace(cfg, **{"out": OUT_DIRS[mode], **kw})
 
 
 def _policy(cfg: DecoderConfig, device: torch.device, seed: int = 0) -> ActionDecoderPolicy:
@@ -242,7 +247,7 @@ def bench_peers(bc: BenchConfig, size: NetSize, clock: Clock) -> dict:
     # dx/dsigma = noise − data = −v_ours, and t_ours = 1 − sigma = 1 − timestep/N.
     fm_sched = diffusers.FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=1.0)
     n_train = fm_sched.config.num_train_timesteps
-    sigmas = np.linspace(1.0, 0.0, K + 1)[:-1].tolist()    # uniform grid = our default grid
+    sigmas = np.linspace(1.0, 0.0, K + 1)[:-1]     # uniform grid = our default grid (an array: diffusers 0.30)
 
     def peer_fm():
         fm_sched.set_timesteps(sigmas=sigmas, device=device)

@@ -20,15 +20,29 @@ def bench_main(monkeypatch):
     return main
 
 
-def test_quick_mode_on_a_tiny_config_writes_finite_tables(bench_main, tmp_path):
+def test_only_the_full_run_writes_the_committed_tables_unless_told(bench_main, monkeypatch):
+    import benchmarks.suite as suite
+
+    seen = []
+    monkeypatch.setattr(suite, "run_suite", seen.append)
+    for argv in (["--quick"], ["--tiny"], [], ["--quick", "--out", "docs/benchmarks"]):
+        assert bench_main(argv) == 0
+    assert [c.out for c in seen] == ["outputs/benchmarks-quick", "outputs/benchmarks-quick", "docs/benchmarks",
+                                     "docs/benchmarks"]
+
+
+def test_quick_mode_on_a_tiny_config_writes_finite_tables(bench_main, tmp_path, monkeypatch):
     pytest.importorskip("diffusers")
     pytest.importorskip("matplotlib")
     quality = tmp_path / "evals"
     quality.mkdir()
     (quality / "eval.json").write_text(json.dumps(
         {"decoder_type": "mean_flow", "sampler": "ode", "steps": 1, "success_rate": 0.5, "latency_ms": 3.0}))
-    out = tmp_path / "bench"
-    assert bench_main(["--tiny", "--out", str(out), "--quality-dir", str(quality)]) == 0
+    monkeypatch.chdir(tmp_path)                      # a checkout: docs/benchmarks holds the committed tables
+    (tmp_path / "docs" / "benchmarks").mkdir(parents=True)
+    assert bench_main(["--tiny", "--quality-dir", str(quality)]) == 0
+    assert not any((tmp_path / "docs" / "benchmarks").iterdir()), "a smoke run leaves the committed tables alone"
+    out = tmp_path / "outputs" / "benchmarks-quick"
 
     readme = (out / "README.md").read_text()
     for heading in ("## Machine", "## 1. Sampler overhead", "## 2. Training step", "## 3. Peers",

@@ -268,9 +268,9 @@ def test_empty_episode_file_is_named(tmp_path):
         load_dataset(tmp_path / "ds")
 
 
-@pytest.mark.parametrize("name, content", [("stats.json", "{not json"), ("stats.json", '[1, 2]'),
-                                           ("stats.json", '{"observation.state": {"mean": "abc", "std": 1, "min": 0, "max": 1}}'),
-                                           ("info.json", "\x00garbage"), ("tasks.parquet", "not parquet\n")])
+@pytest.mark.parametrize("name, content", [("info.json", "\x00garbage"), ("info.json", "[1, 2]"),
+                                           ("tasks.parquet", "not parquet\n"),
+                                           ("episodes/chunk-000/file-000.parquet", "not parquet\n")])
 def test_garbage_metadata_names_the_file(tmp_path, name, content):
     _write_tiny(tmp_path / "ds", np.ones((5, 2)))
     (tmp_path / "ds" / "meta" / name).write_text(content)

@@ -110,6 +110,8 @@ def test_time_features_vary_over_unit_interval():
 
 
 # ------------------------------------------------------------------ 2. forward-mode AD
+@pytest.mark.skipif(tuple(int(x) for x in torch.__version__.split(".")[:2]) < (2, 6),
+                    reason="torch 2.5's SDPA runs under forward AD on CPU; the detection is then a safety net")
 def test_sdpa_really_lacks_forward_ad_so_detection_matters():
     expert = make_expert()
     x, t, r, state, _ = inputs()

@@ -86,6 +86,24 @@ def test_meanflow_loss_gradient_has_stop_gradient_and_skips_jvp_on_r_equal_t(gau
     assert max((x - y).abs().max() for x, y in zip(bad, ref_grads)) > 1e-4
 
 
+def test_meanflow_adaptive_weight_uses_the_per_element_mean_of_the_chunk():
+    """error = mean(Δ²) over H×D, weight (error + c)^−p, not the paper's ‖Δ‖²: the sum would make
+    the loss 8× larger and c 64× smaller relative to the error (docs/benchmarks/meanflow_ablations.md)."""
+    a = torch.randn(64, 16, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    seen = {}
+
+    def u(x, t, r):                      # ratio 0: every row r = t, one plain call
+        seen["z"], seen["t"] = x, t
+        return 0.3 * x
+
+    loss = meanflow_loss(u, a, torch.Generator().manual_seed(1), ratio_r_neq_t=0.0, time_dist="uniform")
+    t = seen["t"].reshape(-1, 1, 1)
+    e = (seen["z"] - t * a) / (1 - t)    # the noise, from z = (1 − t)·e + t·a
+    err = (0.3 * seen["z"] - (a - e)).square().mean((1, 2))                            # [B]
+    torch.testing.assert_close(loss, ((err + 1e-3).pow(-0.5) * err).mean(), rtol=1e-6, atol=0)
+    assert loss < 4.0, "the per-element mean: ≈ 1/8 of the sum norm's loss"
+
+
 def test_meanflow_times_are_logit_normal_and_ordered():
     t, r, n = sample_meanflow_times(20000, 0.5, 0.4, 1.0, torch.Generator().manual_seed(0))
     assert n == 10000 and torch.all(t <= r)

@@ -1,7 +1,9 @@
 """RL fine-tuning: on-policy ratio 1, SAC's σ-only entropy gradient, the tanh correction,
 σ → 0 reducing to the deterministic policy, and `finetune` → `eval` through the CLI."""
 
+import copy
 import json
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -12,11 +14,12 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, ExploringSigma, 
                             velocity_from_meanflow)
 from action_decoder.envs import make_env
 from action_decoder.cli import main
-from action_decoder.rl.critics import ValueNet
+from action_decoder.rl.critics import TwinQ, ValueNet
 from action_decoder.rl.finetune import FinetuneConfig, chain_actor, shaping
+from action_decoder.rl import ppo
 from action_decoder.rl.ppo import gae, group_advantages, ppo_update
 from action_decoder.rl.rollout import collect
-from action_decoder.rl.sac import Temperature, actor_sample
+from action_decoder.rl.sac import ReplayBuffer, Temperature, actor_sample, make_target, sac_update
 from action_decoder.rl.sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
 
 S, D, H = 39, 4, 4
@@ -153,6 +156,11 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     assert main(args) == 0
     log = json.loads((out / "finetune_log.json").read_text())
     assert log["history"][-1]["env_steps"] >= 30 and "ratio_min" in log["history"][-1]
+    # one kl_bc: what each iteration prints is what the log (and its plot) holds; the update's own term is apart
+    printed = [line.split(" kl_bc ")[1].split()[0] for line in capsys.readouterr().out.splitlines()
+               if line.startswith("iter ")]
+    assert printed == [f"{h['kl_bc']:.4f}" for h in log["history"]] and len(printed) == len(log["history"])
+    assert all("kl_bc_update" in h for h in log["history"])
     assert (out / "finetune.png").is_file()
     assert main(args) == 2                                  # refuses to overwrite a run
     assert "already holds a fine-tuning run" in capsys.readouterr().err
@@ -293,3 +301,115 @@ def test_last_step_log_prob_keeps_only_executed_rows(reduce):
     moved[:, -1, :2] += 0.1                                    # executed rows do count
     assert not torch.allclose(rescore_chain(policy, batch, moved, res.grid, reduce, executed=2)[:, -1],
                               res.step_log_probs[:, -1], atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def demo_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.mark.parametrize("decoder", ["mean_flow", "flow_matching"])
+def test_default_path_train_then_finetune(tmp_path, monkeypatch, demo_cache, decoder):
+    """What a user runs first: `train` with its defaults for the decoder (MeanFlow: the clean-chunk
+    head), then `finetune`. Its first PPO update must stay a bounded step: finite logged KLs and an
+    approximate KL to the rollout policy of a few nats at most (the clean-chunk head's last
+    denoising step once made it overflow to inf and stopped the run at iteration 1)."""
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(demo_cache))
+    bc, out = tmp_path / "bc", tmp_path / "ft"
+    assert main(["train", "--task", "metaworld/drawer-close", "--demos", "3", "--decoder", decoder, "--steps", "100",
+                 "--output-dir", str(bc), "--eval-episodes", "0", "--no-progress"]) == 0
+    assert main(["finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(out), "--env-steps", "1",
+                 "--num-envs", "4", "--group-size", "2", "--max-episode-steps", "60", "--eval-episodes", "0"]) == 0
+    row = json.loads((out / "finetune_log.json").read_text())["history"][0]
+    assert all(math.isfinite(v) for v in row.values() if isinstance(v, float)), row
+    assert row["approx_kl"] < 3.0 and row["kl_bc"] < 3.0, row
+
+
+def _ppo_data(policy, n=12, steps=5):
+    batch, gen = _batch(n), torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        res = sample_chain(policy, batch, steps, torch.Generator().manual_seed(0), executed=policy.config.n_action_steps)
+    return {"states": batch["state"], "state_norm": batch["state"], "progress": torch.zeros(n), "chain": res.chain,
+            "grid": res.grid, "logp_old": res.step_log_probs.clone(), "logp_ref": res.step_log_probs.clone(),
+            "adv": torch.randn(n, generator=gen), "ret": torch.zeros(n)}
+
+
+def test_ppo_update_rescores_in_micro_batches(monkeypatch):
+    """The minibatch's gradient is accumulated over micro-batches: the network never sees more than
+    MICROBATCH_ROW_CALLS // trained_steps rows with a live graph, and the update is the unsplit one."""
+    base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(base)
+    cfg = SimpleNamespace(trained_steps=3, ppo_epochs=2, minibatch_size=12, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.1, target_kl=100.0, vf_coef=0.5, grad_clip=1.0)
+    results = []
+    for budget in (10**6, 6):                                    # one micro-batch; then 6 // 3 = 2 rows each
+        monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", budget)
+        policy, value = copy.deepcopy(base), ValueNet(S)
+        torch.manual_seed(0)
+        value.load_state_dict(ValueNet(S).state_dict())
+        rows, forward = [], policy.model.forward
+        monkeypatch.setattr(policy.model, "forward",
+                            lambda x, *a, **k: rows.append(x.shape[0] * torch.is_grad_enabled()) or forward(x, *a, **k))
+        opt = torch.optim.SGD(list(policy.parameters()) + list(value.parameters()), lr=1e-2)
+        stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+        results.append((stats, policy.state_dict(), max(rows)))
+    (s1, w1, rows1), (s2, w2, rows2) = results
+    assert rows1 == 12 and rows2 == 2
+    assert all(torch.allclose(w1[k], w2[k], atol=1e-6) for k in w1)
+    assert s1.keys() == s2.keys() and all(s1[k] == pytest.approx(s2[k], rel=1e-4, abs=1e-5) for k in s1)
+
+
+def test_approx_kl_stays_finite_where_a_step_density_collapses():
+    """approx_kl estimates KL(π_old ‖ π_θ) on π_old's chains as mean(ratio − 1 − log ratio): a stored
+    step that the updated policy finds e^200 times less likely adds ≈ 200/numel, not inf."""
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(policy)
+    data["logp_old"][3, 4] += 200.0
+    cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce="sum",
+                          ratio_tol=float("inf"), clip_eps=0.2, kl_coef=0.0, target_kl=100.0, vf_coef=0.5,
+                          grad_clip=1.0)
+    opt = torch.optim.SGD(policy.parameters(), lr=0.0)
+    stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+    assert stats["approx_kl"] == pytest.approx(199.0 / (12 * 5), rel=1e-3)
+    assert stats["ratio_min"] == 0.0 and "kl_bc_update" not in stats
+
+
+def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
+    """SAC's actor loss (K network calls per row) is back-propagated per micro-batch of
+    MICROBATCH_ROW_CALLS // sde_steps rows; the update still uses the whole batch."""
+    monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", 8)                 # 8 // 4 steps = 2 rows
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
+    reference = finetune_policy(_bc(), sigma=0.5, learn_sigma=False, steps=4).requires_grad_(False)
+    gen = torch.Generator().manual_seed(0)
+    buffer = ReplayBuffer(16)
+    buffer.add({"state": torch.randn(16, S, generator=gen), "progress": torch.rand(16, generator=gen),
+                "actions": torch.rand(16, H, D, generator=gen) * 2 - 1, "reward": torch.rand(16, generator=gen),
+                "next_state": torch.randn(16, S, generator=gen), "next_progress": torch.rand(16, generator=gen),
+                "done": torch.zeros(16, dtype=torch.bool)})
+    q, temperature = TwinQ(S, H * D), Temperature(0.01)
+    optimizers = {"q": torch.optim.Adam(q.parameters(), lr=1e-3), "alpha": torch.optim.Adam(temperature.parameters()),
+                  "actor": torch.optim.Adam(policy.parameters(), lr=1e-3)}
+    cfg = SimpleNamespace(sac_batch_size=6, sde_steps=4, gamma=0.99, grad_clip=1.0, kl_coef=0.1, trained_steps=4,
+                          alpha_lr=1e-2, tau=0.005)
+    rows, forward = [], policy.model.forward
+    monkeypatch.setattr(policy.model, "forward",
+                        lambda x, *a, **k: rows.append(x.shape[0] * torch.is_grad_enabled()) or forward(x, *a, **k))
+    before = [p.detach().clone() for p in policy.model.parameters()]
+    stats = sac_update(policy, reference, q, make_target(q), temperature, optimizers, buffer, lambda st: {"state": st},
+                       cfg, gen)
+    assert max(rows) == 2 and rows.count(2) == 3 * 2 * 4              # 3 micro-batches × (sample + re-score) × K
+    assert all(math.isfinite(v) for v in stats.values()) and {"kl_bc_update", "actor_loss", "q"} <= stats.keys()
+    assert any(not torch.equal(p, b) for p, b in zip(policy.model.parameters(), before))
+
+
+def test_finetune_refuses_an_output_dir_in_use(tmp_path):
+    """Two fine-tuning runs on one directory: the second stops at once, before loading anything."""
+    from action_decoder.rl.finetune import finetune
+    from action_decoder.train import run_dir_lock
+
+    out = tmp_path / "ft"
+    with run_dir_lock(out):
+        with pytest.raises(ValueError, match=r"--output-dir: .* is in use by another run"):
+            finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))
+    with pytest.raises(FileNotFoundError):      # lock released: the run gets as far as the checkpoint
+        finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))

@@ -6,7 +6,7 @@ import os
 import sys
 
 
-SIM_MODULES = ("gymnasium", "metaworld", "mujoco", "pyarrow")
+SIM_MODULES = ("gymnasium", "metaworld", "mujoco")
 
 
 def check_device(name: str, option: str = "--device") -> None:
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     from .evaluate import EvalConfig, run_eval
     from .record import RecordConfig, run_record
     from .rl import FinetuneConfig, finetune
-    from .train import TrainConfig, train
+    from .train import TrainConfig, closed_loop_env, train
 
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
@@ -54,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(cfg, TrainConfig):
             final = train(cfg)
             rank = int(os.environ.get("RANK", 0))
-            if cfg.eval_episodes and rank == 0:
+            # Closed loop only where the dataset names an environment the library runs; otherwise
+            # training reported its held-out validation (train.load_training_data).
+            if cfg.eval_episodes and rank == 0 and closed_loop_env(cfg):
                 run_eval(EvalConfig(checkpoint=str(final), episodes=cfg.eval_episodes, seed=cfg.seed,
                                     device="cpu"))
         elif isinstance(cfg, FinetuneConfig):
@@ -71,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as err:
         if err.name not in SIM_MODULES:
             raise
-        print(f"action-decoder: error: {err.name} is not installed; the simulator and dataset readers come "
-              f"with: pip install \"action-decoder[sim]\"", file=sys.stderr)
+        print(f"action-decoder: error: {err.name} is not installed; the Meta-World simulator comes with: "
+              f"pip install \"action-decoder[sim]\"", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("action-decoder: interrupted; continue with --resume", file=sys.stderr)

@@ -97,7 +97,12 @@ class TrainConfig:
     resume: bool = False
     """Continue from the last checkpoint in output_dir (same optimizer and RNG state)."""
     eval_episodes: int = 20
-    """Closed-loop episodes after training (0: skip)."""
+    """Closed-loop episodes after training (0: skip): on Meta-World tasks, and on a --dataset whose
+    meta/info.json names "env": "metaworld" (what `action-decoder record` writes)."""
+    val_fraction: float = 0.1
+    """Share of a --dataset's episodes held out for validation when the dataset names no environment
+    the library can run: the last ones, at least 1, only when it has >= 2 episodes (0: train on all).
+    Training never sees them; their validation loss and sampled-chunk MSE go to train_log.json."""
     device: str = "auto"
     """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another available torch device."""
     progress: bool = True
@@ -121,17 +126,97 @@ def _device(name: str, local_rank: int) -> torch.device:
 
 
 # ---------------------------------------------------------------------- data
-def load_training_data(cfg: TrainConfig, quiet: bool = False):
-    """(ChunkDataset, task names) from `--dataset` or generated Meta-World demonstrations."""
-    from .data import ChunkDataset, load_dataset, load_demos
+CLOSED_LOOP_ENVS = ("metaworld",)
+"""Environments the library runs closed loop, as a dataset's meta/info.json names them ("env")."""
 
-    if cfg.dataset is not None:
-        episodes = load_dataset(cfg.dataset)
-    else:
+
+def closed_loop_env(cfg: TrainConfig) -> Optional[str]:
+    """The environment that evaluates a policy trained with `cfg` in closed loop, or None: Meta-World
+    for generated demonstrations and for a --dataset whose info.json says "env": "metaworld"."""
+    if cfg.dataset is None:
+        return "metaworld"
+    from .data.lerobot_format import read_info
+
+    env = read_info(cfg.dataset).get("env")
+    return env if env in CLOSED_LOOP_ENVS else None
+
+
+def held_out_count(num_episodes: int, fraction: float) -> int:
+    """Episodes held out for validation: the last ``fraction`` of them, at least 1, at most all but
+    one; 0 with fewer than 2 episodes or ``fraction`` 0."""
+    if not 0 <= fraction < 1 or not math.isfinite(fraction):
+        raise ValueError(f"--val-fraction: expected a share of episodes in [0, 1), got {fraction}")
+    if num_episodes < 2 or fraction == 0:
+        return 0
+    return min(max(1, int(num_episodes * fraction)), num_episodes - 1)
+
+
+def load_training_data(cfg: TrainConfig, quiet: bool = False):
+    """(ChunkDataset, task names, held-out ChunkDataset or None) from `--dataset` or generated
+    Meta-World demonstrations. A dataset's camera features are named in one line (not used), and its
+    last episodes are held out (`held_out_count`) unless it names an environment (`closed_loop_env`);
+    statistics come from the training episodes alone."""
+    from .data import ChunkDataset, load_dataset, load_demos
+    from .data.lerobot_format import camera_keys, read_info
+
+    if cfg.dataset is None:
         if not quiet:
             print(f"demonstrations: {cfg.demos} per task of {cfg.task} (cached after the first run)", flush=True)
         episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg))
-    return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks)
+        return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks), None
+    episodes = load_dataset(cfg.dataset)
+    cameras = camera_keys(read_info(cfg.dataset))
+    if cameras and not quiet:
+        print(f"cameras: not used: {', '.join(cameras)}; training conditions on observation.state only. To use "
+              f"them, encode the frames with a vision model and pass the features as \"context\" tokens or a "
+              f"\"vlm_key_values\" cache to ActionDecoderPolicy through the Python API (image conditioning "
+              f"from the CLI is not available yet)", flush=True)
+    n = episodes.num_episodes
+    env = closed_loop_env(cfg)
+    held = 0 if env else held_out_count(n, cfg.val_fraction)
+    if not held and not env and not quiet:
+        print(f"validation: none: {cfg.dataset} names no environment the library runs (meta/info.json "
+              f"\"env\"), and holding out episodes needs >= 2 of them and --val-fraction > 0 (got {n} and "
+              f"{cfg.val_fraction})", flush=True)
+    if not held:
+        return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks), None
+    train_eps, val_eps = episodes.select(n - held), episodes.select(list(range(n - held, n)))
+    if not quiet:
+        print(f"validation: holding out the last {held} of {n} episodes (ids {val_eps.episode_ids.tolist()}; "
+              f"--val-fraction {cfg.val_fraction}); training on {n - held}", flush=True)
+    return ChunkDataset(train_eps, cfg.horizon), list(episodes.tasks), ChunkDataset(val_eps, cfg.horizon)
+
+
+VAL_NOISE_DRAWS, VAL_SEED, VAL_BATCH = 8, 0, 256
+
+
+@torch.no_grad()
+def validation_metrics(policy: ActionDecoderPolicy, val, num_tasks: int, device: torch.device) -> dict:
+    """The trained policy on held-out chunks (a ChunkDataset): ``val_loss``, the decoder's own
+    training loss averaged over `VAL_NOISE_DRAWS` noise draws, and ``val_action_mse``, the mean
+    squared error of one sampled chunk per frame (the config's sampler) against the held-out actions,
+    in normalised units over the steps that are not padding. Both draw from generators seeded with
+    `VAL_SEED`, so the same policy gives the same numbers."""
+    was_training = policy.training
+    policy.eval()
+    loss_gen = torch.Generator(device=device).manual_seed(VAL_SEED)
+    sample_gen = torch.Generator(device=device).manual_seed(VAL_SEED + 1)
+    norm = policy.normalizers["actions"].normalize
+    loss_sum, err_sum, err_count = 0.0, 0.0, 0
+    for start in range(0, len(val), VAL_BATCH):
+        items = default_collate([val[i] for i in range(start, min(start + VAL_BATCH, len(val)))])
+        batch = {"state": items["state"].to(device), "actions": items["actions"].to(device),   # [B, S], [B, H, D]
+                 **{k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()}}
+        draws = [float(policy.compute_loss(batch, loss_gen).loss) for _ in range(VAL_NOISE_DRAWS)]
+        loss_sum += sum(draws) / VAL_NOISE_DRAWS * len(items["state"])
+        chunk = policy.sample(batch, generator=sample_gen).actions                 # [B, H, D]
+        keep = ~items["action_is_pad"].to(device)                                 # [B, H]
+        err = (norm(chunk) - norm(batch["actions"])).pow(2).mean(-1)               # [B, H]
+        err_sum, err_count = err_sum + float(err[keep].sum()), err_count + int(keep.sum())
+    policy.train(was_training)
+    return {"val_loss": loss_sum / len(val), "val_action_mse": err_sum / err_count,
+            "episodes": val.dataset.episode_ids.tolist(), "frames": len(val), "noise_draws": VAL_NOISE_DRAWS,
+            "seed": VAL_SEED}
 
 
 def task_context(task_index: torch.Tensor, num_tasks: int) -> dict:
@@ -387,7 +472,8 @@ def _effective(cfg: TrainConfig) -> dict:
     values.update(
         dataset=str(Path(cfg.dataset).expanduser().resolve()) if on_dataset else None,
         task=None if on_dataset else resolve_tasks(cfg.task),   # --dataset ignores --task and --demos
-        demos=None if on_dataset else cfg.demos, state_layout=state_layout(cfg), augment_shift=augment_shift(cfg),
+        demos=None if on_dataset else cfg.demos, val_fraction=cfg.val_fraction if on_dataset else None,
+        state_layout=state_layout(cfg), augment_shift=augment_shift(cfg),
         flow_prediction=flow_prediction(cfg), inference_steps=cfg.inference_steps or DEFAULT_STEPS[cfg.decoder])
     return {k: v for k, v in values.items() if k not in RESUMABLE}
 
@@ -437,6 +523,7 @@ def _check(cfg: TrainConfig) -> None:
                          f"(that is --prediction-type epsilon|sample); got --flow-prediction "
                          f"{cfg.flow_prediction} with --decoder DDPM")
     demo_noise(cfg)
+    held_out_count(2, cfg.val_fraction)
 
 
 def train(cfg: TrainConfig) -> Path:
@@ -501,7 +588,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     main = rank == 0
     shift = augment_shift(cfg)
     resumed = _resume(cfg, out, device, main)
-    ds, tasks = load_training_data(cfg, quiet=not main)
+    ds, tasks, val = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
     torch.manual_seed(cfg.seed)
     policy = ActionDecoderPolicy(dconf, ds.stats).to(device)
@@ -575,9 +662,16 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         bar.close()
     final = out / FINAL
     if main:
-        save_final(out, policy if ema is None else ema.module)
+        trained = policy if ema is None else ema.module
+        save_final(out, trained)
+        log = {"config": asdict(cfg), "history": history}
+        if val is not None:
+            log["validation"] = validation_metrics(trained, val, len(tasks), device)
+            print(f"validation on held-out episodes {log['validation']['episodes']}: "
+                  f"val_loss={log['validation']['val_loss']:.4f} "
+                  f"val_action_mse={log['validation']['val_action_mse']:.4f}", flush=True)
         with _writing(out / "train_log.json", out):
-            (out / "train_log.json").write_text(json.dumps({"config": asdict(cfg), "history": history}, indent=1))
+            (out / "train_log.json").write_text(json.dumps(log, indent=1))
             if history:
                 plot_losses(history, out / "loss.png",
                             f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")

@@ -55,6 +55,9 @@ def read_kv_layers(vlm_key_values: Any) -> list[tuple[Tensor, Tensor]]:
     layers = getattr(vlm_key_values, "layers", None)
     if layers is not None:
         return [(layer.keys, layer.values) for layer in layers]
+    if hasattr(vlm_key_values, "key_cache"):      # transformers < 4.54 keeps key_cache lists, no .layers
+        raise ValueError("vlm_key_values: this transformers Cache has no .layers (transformers < 4.54); "
+                         "install action-decoder[vlm] (transformers>=4.54) or pass a sequence of (K, V) pairs")
     if isinstance(vlm_key_values, Sequence) and not isinstance(vlm_key_values, Tensor):
         return [(pair[0], pair[1]) for pair in vlm_key_values]
     raise ValueError(f"vlm_key_values: expected a transformers Cache or a sequence of per-layer "

@@ -22,7 +22,7 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, save_final, task_context,
+from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final, task_context,
                      write_checkpoint)
 from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
@@ -231,11 +231,17 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
 
 
 def finetune(cfg: FinetuneConfig) -> Path:
-    """Run the fine-tuning; returns the `final/` checkpoint directory."""
+    """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
+    locked for the run (`train.run_dir_lock`): a second run on it stops at once."""
+    _check(cfg)
+    with run_dir_lock(Path(cfg.output_dir)):
+        return _finetune(cfg)
+
+
+def _finetune(cfg: FinetuneConfig) -> Path:
     from ..envs import evaluate, make_env
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
-    _check(cfg)
     out = Path(cfg.output_dir)
     bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
     trained = list(bc.config.extra.get("tasks") or [])
@@ -325,6 +331,8 @@ def finetune(cfg: FinetuneConfig) -> Path:
             logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
                                                 rec["grid"][0], cfg.logprob_reduce, n_exec)
                                   for i in range(0, len(rewards), 512)])
+        # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
+        # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
         kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
         norm = policy.normalizers["state"].normalize
         if cfg.algo == "ppo":
@@ -351,7 +359,7 @@ def finetune(cfg: FinetuneConfig) -> Path:
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
         row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
                "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), "sigma_mult": mult, "kl_bc": kl_rollout, **stats,
+               "decisions": len(rewards), "sigma_mult": mult, **stats, "kl_bc": kl_rollout,
                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")

@@ -82,6 +82,12 @@ def trained_slice(steps: int, trained_steps: int) -> slice:
     return slice(steps - trained_steps, steps)
 
 
+MICROBATCH_ROW_CALLS = 256
+"""Rows × network calls re-scored with a live autograd graph at a time (≈ 0.7 MB per row-call
+for the default network): a minibatch of 512 chains × 10 steps kept every call's activations
+until its one backward, 3.5 GB; micro-batches accumulate the same gradient in ≈ 180 MB."""
+
+
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
                data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
@@ -89,9 +95,20 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
     logp_old / logp_ref [N, K] (rollout policy / frozen BC policy), adv, ret [N].
     `update_policy=False` trains only the critic (warm-up).
+
+    Only the trained steps are re-scored (each step's density needs only its stored start and
+    end states), in micro-batches whose losses are back-propagated at once (`MICROBATCH_ROW_CALLS`):
+    the gradient is the minibatch's, the memory that of a micro-batch. `approx_kl` estimates
+    KL(π_old ‖ π_θ) per trained step on the stored chains, which π_old sampled: k3 of
+    log(π_θ/π_old), i.e. mean(ratio − 1 − log ratio) as in common PPO code. It grows like |log ratio|
+    where a step's density collapses; the reverse form, mean(1/ratio − 1 + log ratio), grows like
+    1/ratio and overflowed to inf on the clean-chunk head's sharp last step. `kl_bc_update`
+    (only with `kl_coef` > 0) is the KL-to-BC penalty term averaged over the update's minibatches.
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
     trained = trained_slice(K, cfg.trained_steps)
+    chain, grid = data["chain"][:, trained.start:], data["grid"][trained.start:]   # [N, K'+1, H, D], [K'+1]
+    micro = max(1, MICROBATCH_ROW_CALLS // cfg.trained_steps)
     adv = data["adv"]
     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if n > 1 else adv
     # Clipped apart: the critic's gradient scale (returns of up to ~1/(1−γ)) must not shrink the policy's.
@@ -99,48 +116,60 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     critic_ids = {id(p) for p in critic_params}
     policy_params = [p for g in optimizer.param_groups for p in g["params"] if id(p) not in critic_ids]
     stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0}
-    logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
+    logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc_update", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
     first, stop = True, False
     for epoch in range(cfg.ppo_epochs):
         perm = torch.randperm(n, generator=generator)
         for start in range(0, n, cfg.minibatch_size):
             idx = perm[start:start + cfg.minibatch_size]
-            value = value_net(data["state_norm"][idx], data["progress"][idx])
-            v_loss = (value - data["ret"][idx]).square().mean()
-            loss = cfg.vf_coef * v_loss
+            optimizer.zero_grad(set_to_none=True)
             if update_policy:
-                lp = rescore_chain(policy, make_batch(data["states"][idx]), data["chain"][idx], data["grid"],
-                                   cfg.logprob_reduce, policy.config.n_action_steps)[:, trained]  # [b, K']
-                log_ratio = lp - data["logp_old"][idx, trained]
+                parts = {"pg": 0.0, "kl": 0.0}
+                log_ratios = []
+                for sub in idx.split(micro):
+                    w = len(sub) / len(idx)                   # micro-batch share of the minibatch mean
+                    lp = rescore_chain(policy, make_batch(data["states"][sub]), chain[sub], grid,
+                                       cfg.logprob_reduce, policy.config.n_action_steps)            # [b, K']
+                    log_ratio = lp - data["logp_old"][sub, trained]
+                    ratio = log_ratio.exp()
+                    a = adv[sub, None]
+                    pg = -torch.min(ratio * a, ratio.clamp(1 - cfg.clip_eps, 1 + cfg.clip_eps) * a).mean()
+                    loss = pg
+                    if cfg.kl_coef > 0:
+                        kl_bc = k3_kl(data["logp_ref"][sub, trained] - lp).mean()
+                        loss = loss + cfg.kl_coef * kl_bc
+                        parts["kl"] += w * float(kl_bc.detach())
+                    (w * loss).backward()
+                    parts["pg"] += w * float(pg.detach())
+                    log_ratios.append(log_ratio.detach())
+                log_ratio = torch.cat(log_ratios)                                                    # [b, K']
                 ratio = log_ratio.exp()
                 if first:
-                    dev = float((ratio.detach() - 1).abs().max())
+                    dev = float((ratio - 1).abs().max())
                     stats["ratio_dev_before_update"] = dev
                     if not dev <= cfg.ratio_tol:
                         raise RuntimeError(f"PPO: on-policy ratio is not 1 before the first update (max |ratio − 1| "
                                            f"= {dev:.2e} > {cfg.ratio_tol:g}): the stored chain is re-scored with a "
                                            f"different velocity, σ or grid than the one that sampled it")
-                a = adv[idx, None]
-                pg = -torch.min(ratio * a, ratio.clamp(1 - cfg.clip_eps, 1 + cfg.clip_eps) * a).mean()
-                kl_bc = k3_kl(data["logp_ref"][idx, trained] - lp).mean()
-                loss = loss + pg + cfg.kl_coef * kl_bc
-                with torch.no_grad():
-                    approx_kl = float(k3_kl(-log_ratio).mean())
-                    logs["pg_loss"].append(float(pg))
-                    logs["kl_bc"].append(float(kl_bc))
-                    logs["approx_kl"].append(approx_kl)
-                    logs["clipfrac"].append(float(((ratio - 1).abs() > cfg.clip_eps).float().mean()))
-                    logs["ratio_mean"].append(float(ratio.mean()))
-                    logs["ratio_min"].append(float(ratio.min()))
-                    logs["ratio_max"].append(float(ratio.max()))
+                approx_kl = float(k3_kl(log_ratio).mean())
+                logs["pg_loss"].append(parts["pg"])
+                if cfg.kl_coef > 0:
+                    logs["kl_bc_update"].append(parts["kl"])
+                logs["approx_kl"].append(approx_kl)
+                logs["clipfrac"].append(float(((ratio - 1).abs() > cfg.clip_eps).float().mean()))
+                logs["ratio_mean"].append(float(ratio.mean()))
+                logs["ratio_min"].append(float(ratio.min()))
+                logs["ratio_max"].append(float(ratio.max()))
                 if approx_kl > 1.5 * cfg.target_kl:    # too far from the rollout policy: stop here
+                    optimizer.zero_grad(set_to_none=True)
                     stop = True
                     break
             first = False
+            value = value_net(data["state_norm"][idx], data["progress"][idx])
+            v_loss = (value - data["ret"][idx]).square().mean()
             logs["v_loss"].append(float(v_loss.detach()))
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            (cfg.vf_coef * v_loss).backward()
             torch.nn.utils.clip_grad_norm_(policy_params, cfg.grad_clip)
             torch.nn.utils.clip_grad_norm_(critic_params, cfg.grad_clip)
             optimizer.step()

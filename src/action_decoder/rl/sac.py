@@ -24,6 +24,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from . import ppo
 from .ppo import k3_kl, trained_slice
 from .sde_policy import rescore_chain, sample_chain, squash_to_box
 
@@ -109,23 +110,35 @@ def sac_update(policy, reference, q, q_target, temperature: Temperature, optimiz
     torch.nn.utils.clip_grad_norm_(q.parameters(), cfg.grad_clip)
     optimizers["q"].step()
 
-    batch = make_batch(b["state"])
-    actions, logp, res = actor_sample(policy, batch, cfg, generator)
-    q_pi = torch.min(*q(norm(b["state"]), b["progress"], actions[:, :n]))
-    actor_loss = (alpha * logp - q_pi).mean()
-    stats = {"q_loss": float(q_loss.detach()), "q": float(q_pi.detach().mean()),
-             "entropy_per_dim": float(-logp.detach().mean()), "alpha": float(alpha)}
-    if cfg.kl_coef > 0:
-        chain = res.chain.detach()
-        lp = rescore_chain(policy, batch, chain, res.grid)
-        with torch.no_grad():
-            lp_ref = rescore_chain(reference, batch, chain, res.grid)
-        kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
-        actor_loss = actor_loss + cfg.kl_coef * kl
-        stats["kl_bc"] = float(kl.detach())
+    # The actor's graph spans K network calls per row: back-propagated per micro-batch (ppo.MICROBATCH_ROW_CALLS).
     opt_actor = optimizers["actor"]
     opt_actor.zero_grad(set_to_none=True)
-    actor_loss.backward()
+    micro = max(1, ppo.MICROBATCH_ROW_CALLS // cfg.sde_steps)
+    parts = {"actor_loss": 0.0, "kl_bc_update": 0.0}
+    logps, q_pis = [], []
+    for sub in torch.arange(len(b["state"])).split(micro):
+        w = len(sub) / len(b["state"])                     # micro-batch share of the batch mean
+        batch = make_batch(b["state"][sub])
+        actions, logp, res = actor_sample(policy, batch, cfg, generator)               # [b, H, D], [b]
+        q_pi = torch.min(*q(norm(b["state"][sub]), b["progress"][sub], actions[:, :n]))
+        loss = (alpha * logp - q_pi).mean()
+        if cfg.kl_coef > 0:
+            chain = res.chain.detach()
+            lp = rescore_chain(policy, batch, chain, res.grid)
+            with torch.no_grad():
+                lp_ref = rescore_chain(reference, batch, chain, res.grid)
+            kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
+            loss = loss + cfg.kl_coef * kl
+            parts["kl_bc_update"] += w * float(kl.detach())
+        (w * loss).backward()
+        parts["actor_loss"] += w * float(loss.detach())
+        logps.append(logp.detach())
+        q_pis.append(q_pi.detach())
+    logp = torch.cat(logps)                                                            # [B]
+    stats = {"q_loss": float(q_loss.detach()), "q": float(torch.cat(q_pis).mean()),
+             "entropy_per_dim": float(-logp.mean()), "alpha": float(alpha), "actor_loss": parts["actor_loss"]}
+    if cfg.kl_coef > 0:
+        stats["kl_bc_update"] = parts["kl_bc_update"]
     torch.nn.utils.clip_grad_norm_([p for g in opt_actor.param_groups for p in g["params"]], cfg.grad_clip)
     opt_actor.step()
     if cfg.alpha_lr > 0:
@@ -135,7 +148,6 @@ def sac_update(policy, reference, q, q_target, temperature: Temperature, optimiz
     with torch.no_grad():
         for p, tp in zip(q.parameters(), q_target.parameters()):
             tp.lerp_(p, cfg.tau)
-    stats["actor_loss"] = float(actor_loss.detach())
     return stats
 
 
