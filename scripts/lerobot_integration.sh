@@ -7,7 +7,8 @@
 # Steps: (a) write a dataset with LeRobot's API; (b) `action-decoder train --dataset` on it;
 # (c) `action-decoder record` a Meta-World dataset and load it with `LeRobotDataset`;
 # (d) `lerobot-train --policy.type=action_decoder` for DDPM, flow matching and MeanFlow;
-# (e) reload each checkpoint with LeRobot's `from_pretrained` and run `select_action`;
+# (e) reload each checkpoint with LeRobot's `from_pretrained` and run `select_action`; MeanFlow
+# again with 2 data-parallel processes (torchrun → accelerate, gloo on CPU);
 # (f) the plugin's unit tests with LeRobot installed. One summary line per step (ok/FAILED);
 # exit 1 if any step failed. Building the venv takes about 5 minutes and 8.7 GB (LeRobot
 # brings its own torch < 2.11); the steps take a few minutes on a CPU. Nothing is pushed.
@@ -42,13 +43,16 @@ setup_venv() {
     python3 -m venv "$VENV" && "$VENV/bin/pip" install "lerobot==0.4.4" || return 1
   fi
   # The core and the plugin without their dependencies (the venv's torch stays LeRobot's), then
-  # the core's other dependencies, torch pinned to the installed version.
+  # the core's other dependencies, resolved together with lerobot's pins and torch held at the
+  # installed version (transformers is left out: the core does not import it, and a newer one
+  # would replace the huggingface-hub that lerobot 0.4.4 needs).
   "$VENV/bin/pip" install --no-deps -e "$REPO" -e "$REPO/lerobot_policy_action_decoder" || return 1
   "$PY" -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$WORK/constraints.txt"
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "diffusers>=0.30" "transformers>=4.44" "safetensors>=0.4" \
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "diffusers>=0.30" "safetensors>=0.4" \
       "tyro>=0.8" "tqdm>=4.60" "matplotlib>=3.7" "pyarrow>=14" pytest || return 1
   # Meta-World only for `action-decoder record` (step c); the other steps need no simulator.
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "metaworld>=3.0" "mujoco>=3.0" || echo "metaworld not installed"
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0" \
+      || echo "metaworld not installed: step c will fail"
   "$PY" -c "import lerobot, torch, action_decoder, lerobot_policy_action_decoder as p; p.ActionDecoderPolicy; \
 print('lerobot', lerobot.__version__, 'torch', torch.__version__)"
 }
@@ -82,7 +86,7 @@ EOF
 }
 
 record_and_load() {  # (c) needs `action-decoder record` and Meta-World
-  action-decoder record --help >/dev/null 2>&1 || { echo "action-decoder record: not available in this checkout"; return 1; }
+  action-decoder --help 2>&1 | grep -qw record || { echo "action-decoder record: no such subcommand in this checkout"; return 1; }
   rm -rf "$WORK/rec"
   action-decoder record --task metaworld/reach --demos 2 --output-dir "$WORK/rec" --seed 0 || return 1
   "$PY" - "$WORK/rec" <<'EOF'
@@ -107,6 +111,15 @@ lerobot_train() {  # (d)
       --save_freq="$STEPS" --eval_freq=0 --wandb.enable=false
 }
 
+lerobot_train_ddp() {  # (d') LeRobot's accelerate path with 2 data-parallel processes (gloo on CPU)
+  rm -rf "$WORK/lrt_ddp"
+  torchrun --nproc_per_node 2 -m lerobot.scripts.lerobot_train --policy.type=action_decoder \
+      --policy.decoder_type=mean_flow --policy.device=cpu --policy.push_to_hub=false --dataset.repo_id=local/toy \
+      --dataset.root="$WORK/lr_toy" --output_dir="$WORK/lrt_ddp" --steps=10 --batch_size=8 --num_workers=0 \
+      --log_freq=5 --save_freq=10 --eval_freq=0 --wandb.enable=false || return 1
+  grep -q "effective batch size: 16" "$WORK/logs/d_lerobot_train_ddp_mean_flow.log" || { echo "not data-parallel"; return 1; }
+}
+
 reload_and_act() {  # (e) LeRobot's from_pretrained + its saved processors + select_action
   "$PY" - "$WORK/lrt_$1/checkpoints/last/pretrained_model" "$WORK/lr_toy" <<'EOF'
 import sys
@@ -114,7 +127,9 @@ import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.utils.import_utils import register_third_party_plugins
 
+register_third_party_plugins()          # what lerobot-train / lerobot-eval do: imports lerobot_policy_*
 path, root = sys.argv[1:]
 cfg = PreTrainedConfig.from_pretrained(path)
 cfg.device = "cpu"
@@ -139,6 +154,7 @@ if [ "$FAILED" = 0 ]; then
     step "d_lerobot_train_$decoder" lerobot_train "$decoder"
     step "e_reload_select_action_$decoder" reload_and_act "$decoder"
   done
+  step d_lerobot_train_ddp_mean_flow lerobot_train_ddp
   step f_plugin_tests_with_lerobot "$PY" -m pytest -q -p no:cacheprovider "$REPO/tests/test_lerobot_plugin.py"
 fi
 

@@ -222,7 +222,8 @@ def test_lerobot_resolves_the_plugin_type():
 @pytest.mark.parametrize("decoder", ["DDPM", "flow_matching", "mean_flow"])
 def test_lerobot_dataset_batch_trains_and_reloads(decoder, toy_root, tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.policies.factory import make_pre_post_processors, resolve_delta_timestamps
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.policies.factory import make_pre_post_processors
 
     from lerobot_policy_action_decoder import ActionDecoderPolicy
 
@@ -263,3 +264,19 @@ def test_lerobot_policy_reaches_the_sde_and_its_log_probs(toy_root):
     torch.testing.assert_close(rescored, out.step_log_probs)
     with pytest.raises(ValueError, match=r"unknown task\(s\) \['open the door'\]"):
         policy.select_action(pre({"observation.state": torch.randn(6), "task": "open the door"}))
+
+
+@lerobot_only
+def test_lerobot_policy_names_the_camera_keys_it_does_not_use(caplog):
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from lerobot_policy_action_decoder import ActionDecoderConfig, ActionDecoderPolicy
+
+    cfg = ActionDecoderConfig(device="cpu", hidden_size=32, num_hidden_layers=2, input_features={
+        "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
+        "observation.images.top": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32))},
+        output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(3,))})
+    with caplog.at_level("WARNING"):
+        ActionDecoderPolicy(cfg)
+    lines = [r.getMessage() for r in caplog.records if "observation.images.top" in r.getMessage()]
+    assert len(lines) == 1 and "\n" not in lines[0] and "context" in lines[0]

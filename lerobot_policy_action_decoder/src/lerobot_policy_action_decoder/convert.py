@@ -51,9 +51,8 @@ def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
     if not keys:
         return None
     return (f"action_decoder: not using input(s) {list(keys)}; the policy conditions on {STATE!r} and the task "
-            f"string only. To condition on them, encode them into context tokens for the core policy "
-            f"(DecoderConfig.context_dim, batch['context']); to silence this, leave them out with "
-            f"--policy.input_features")
+            f"string only. To condition on them, encode them into context tokens of the core policy "
+            f"(action_decoder.DecoderConfig.context_dim, batch['context'] [B, L, C])")
 
 
 def decoder_config(cfg: Any, state_dim: int, action_dim: int) -> DecoderConfig:
