@@ -15,7 +15,7 @@
 set -uo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-VENV=${LEROBOT_VENV:-$REPO/.venv-lerobot}
+VENV=${LEROBOT_VENV:-$REPO/.cache/lerobot-venv}   # .cache/ is git-ignored
 WORK=${WORK_DIR:-$(mktemp -d -t lerobot_integration.XXXXXX)}
 STEPS=${LEROBOT_STEPS:-20}
 PY=$VENV/bin/python
@@ -85,6 +85,14 @@ print("wrote", sys.argv[1], back.num_episodes, "episodes", back.num_frames, "fra
 EOF
 }
 
+train_on_dataset() {  # (b) exit 0, and the checkpoint keeps the dataset's task strings
+  rm -rf "$WORK/ad_train"
+  action-decoder train --dataset "$WORK/lr_toy" --steps 30 --batch-size 32 --output-dir "$WORK/ad_train" --seed 0 \
+      || return 1
+  "$PY" -c "import json, sys; t = json.load(open(sys.argv[1]))['extra']['tasks']; \
+assert t == ['push the block', 'lift the cube'], t; print('tasks', t)" "$WORK/ad_train/final/config.json"
+}
+
 record_and_load() {  # (c) needs `action-decoder record` and Meta-World
   action-decoder --help 2>&1 | grep -qw record || { echo "action-decoder record: no such subcommand in this checkout"; return 1; }
   rm -rf "$WORK/rec"
@@ -147,8 +155,7 @@ EOF
 step venv setup_venv
 if [ "$FAILED" = 0 ]; then
   step a_write_dataset_lerobot_api write_dataset
-  step b_action_decoder_train_dataset action-decoder train --dataset "$WORK/lr_toy" --steps 30 --batch-size 32 \
-      --output-dir "$WORK/ad_train" --seed 0
+  step b_action_decoder_train_dataset train_on_dataset
   step c_record_and_load_in_lerobot record_and_load
   for decoder in DDPM flow_matching mean_flow; do
     step "d_lerobot_train_$decoder" lerobot_train "$decoder"
