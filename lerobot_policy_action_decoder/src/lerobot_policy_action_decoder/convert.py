@@ -1,0 +1,156 @@
+"""The LeRobot ↔ action_decoder boundary, in plain torch (no LeRobot import, testable without it).
+
+LeRobot names a batch `observation.state` [B, S], `action` [B, H, D] with `action_is_pad`
+[B, H] and `task` (one string per row); the core policy reads `state`, `actions` and, when it
+was trained on several tasks, a one-hot task token `context` [B, 1, T]. `decoder_config`
+maps the plugin's config (any object with its attribute names) to a core `DecoderConfig`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from action_decoder import DecoderConfig
+from action_decoder.train import DEFAULT_STEPS  # sampling steps when num_inference_steps is None
+
+STATE, ACTION, PAD, TASK = "observation.state", "action", "action_is_pad", "task"
+# Plugin field -> DecoderConfig field, where the names differ (LeRobot's names on the left).
+RENAMED = {"chunk_size": "action_chunk_size", "num_inference_steps": "num_inference_timesteps"}
+# Fields passed to DecoderConfig under the same name.
+SHARED = ("decoder_type", "n_action_steps", "flow_sde_num_steps", "num_train_timesteps", "prediction_type",
+          "beta_schedule", "clip_sample", "flow_sde_use", "flow_sde_mode", "flow_sde_s_churn",
+          "flow_sde_learn_sigma", "flow_sde_sigma_init", "flow_sde_return_logprob", "flow_sde_logprob_sigma_only",
+          "meanflow_sde_velocity", "meanflow_ratio_r_neq_t", "meanflow_time_dist", "meanflow_adaptive_p",
+          "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads")
+
+
+def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str, Any]) -> tuple[int, int]:
+    """(state_dim, action_dim) from LeRobot's features (`.shape` each): a 1-d `observation.state`
+    and a 1-d `action` are required."""
+    dims = []
+    for where, feats, key in (("input_features", input_features, STATE), ("output_features", output_features, ACTION)):
+        ft = (feats or {}).get(key)
+        shape = tuple(getattr(ft, "shape", ())) if ft is not None else None
+        if shape is None or len(shape) != 1 or int(shape[0]) < 1:
+            raise ValueError(f"policy.{where}[{key!r}]: expected a 1-d feature of shape (dim,), got "
+                             f"{'nothing' if ft is None else shape} (features: {sorted(feats or {})})")
+        dims.append(int(shape[0]))
+    return dims[0], dims[1]
+
+
+def unused_inputs(input_features: Mapping[str, Any]) -> list[str]:
+    """Input keys the decoder does not read (cameras, environment state): all but `observation.state`."""
+    return sorted(k for k in (input_features or {}) if k != STATE)
+
+
+def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
+    """One line naming the inputs that do not condition the policy, and how they could; None if none."""
+    if not keys:
+        return None
+    return (f"action_decoder: not using input(s) {list(keys)}; the policy conditions on {STATE!r} and the task "
+            f"string only. To condition on them, encode them into context tokens of the core policy "
+            f"(action_decoder.DecoderConfig.context_dim, batch['context'] [B, L, C])")
+
+
+def decoder_config(cfg: Any, state_dim: int, action_dim: int) -> DecoderConfig:
+    """The core `DecoderConfig` of a plugin config.
+
+    Normalisation is `identity`: LeRobot's processors normalise before the policy and
+    un-normalise after it, so the weights hold no statistics. `num_inference_steps=None`
+    and `flow_prediction=None` take what `action-decoder train` takes (MeanFlow: 1 step and
+    the clean-chunk head; DDPM and flow matching: 10 steps and GO-1's velocity head). With
+    two or more `tasks` the task is a one-hot context token of width len(tasks).
+    A bad value raises the core's ValueError with the plugin's field name (`policy.<name>`).
+    """
+    tasks = [str(t) for t in (getattr(cfg, "tasks", None) or [])]
+    values = {name: getattr(cfg, name) for name in SHARED}
+    steps = getattr(cfg, "num_inference_steps")
+    values["num_inference_timesteps"] = DEFAULT_STEPS.get(cfg.decoder_type, 10) if steps is None else steps
+    values["action_chunk_size"] = getattr(cfg, "chunk_size")
+    pred = getattr(cfg, "flow_prediction")
+    values["flow_prediction"] = pred or ("sample" if cfg.decoder_type == "mean_flow" else "velocity")
+    try:
+        return DecoderConfig(**values, state_dim=state_dim, action_dim=action_dim, normalization_mode="identity",
+                             context_dim=len(tasks) if len(tasks) > 1 else None,
+                             extra={"tasks": tasks, "lerobot_policy": "action_decoder"})
+    except ValueError as err:
+        msg = str(err)
+        for ours, core in RENAMED.items():
+            msg = msg.replace(core, ours)
+        raise ValueError(f"policy.{msg}") from None
+
+
+def task_list(tasks: Any) -> list[str]:
+    """Task strings ordered by task index, from LeRobot metadata's `tasks` (a pandas DataFrame
+    indexed by the string with a `task_index` column), a {index: string} dict or a list."""
+    if tasks is None:
+        return []
+    if hasattr(tasks, "index") and hasattr(tasks, "columns") and "task_index" in tasks.columns:
+        pairs = sorted((int(i), str(s)) for s, i in zip(tasks.index, tasks["task_index"]))
+        return [s for _, s in pairs]
+    if isinstance(tasks, Mapping):
+        return [str(tasks[k]) for k in sorted(tasks)]
+    return [str(t) for t in tasks]
+
+
+def task_token(task: Any, tasks: Sequence[str], batch_size: int, device=None) -> Optional[Tensor]:
+    """One-hot task token [B, 1, T] from the batch's task strings; None for a single-task policy."""
+    if len(tasks) <= 1:
+        return None
+    if task is None:
+        raise ValueError(f"batch[{TASK!r}]: missing; this policy was trained on {len(tasks)} tasks {list(tasks)} "
+                         f"and needs one task string per row")
+    names = [task] * batch_size if isinstance(task, str) else list(task)
+    if len(names) != batch_size:
+        raise ValueError(f"batch[{TASK!r}]: expected {batch_size} task strings (one per row), got {len(names)}")
+    known = {t: i for i, t in enumerate(tasks)}
+    unknown = sorted({n for n in names if n not in known})
+    if unknown:
+        raise ValueError(f"batch[{TASK!r}]: unknown task(s) {unknown}; this policy knows {list(tasks)}")
+    index = torch.tensor([known[n] for n in names], device=device)                     # [B]
+    return torch.nn.functional.one_hot(index, len(tasks)).float()[:, None, :]           # [B, 1, T]
+
+
+def hold_last_action(actions: Tensor, is_pad: Optional[Tensor]) -> Tensor:
+    """Padded steps [B, H, D] replaced by the row's last real action (the core trainer's convention
+    near an episode's end, so `lerobot-train` and `action-decoder train` learn the same targets:
+    hold the final action). A row that is all padding is left as it is."""
+    if is_pad is None:
+        return actions
+    if is_pad.shape != actions.shape[:2]:
+        raise ValueError(f"batch[{PAD!r}]: expected shape {list(actions.shape[:2])} (batch, chunk), "
+                         f"got {list(is_pad.shape)}")
+    real = ~is_pad.bool()                                                                 # [B, H]
+    steps = torch.arange(actions.shape[1], device=actions.device)                         # [H]
+    last = torch.where(real, steps, -1).cummax(dim=1).values.clamp_min(0)                 # [B, H] last real step so far
+    held = actions.gather(1, last[..., None].expand_as(actions))                          # [B, H, D]
+    return torch.where(real[..., None], actions, held)
+
+
+def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int,
+                  with_actions: bool) -> dict:
+    """LeRobot batch → core batch: `state` [B, S], `actions` [B, H, D] (padding held at the last
+    real action) when `with_actions`, and the task token `context` [B, 1, T] for multi-task."""
+    state = batch.get(STATE)
+    if not isinstance(state, Tensor):
+        raise ValueError(f"batch[{STATE!r}]: missing; expected a tensor of shape [B, {state_dim}], got "
+                         f"{type(state).__name__} (keys {sorted(batch)})")
+    if state.dim() == 3 and state.shape[1] == 1:
+        state = state[:, 0]                                                               # [B, 1, S] -> [B, S]
+    if state.dim() != 2 or state.shape[1] != state_dim:
+        raise ValueError(f"batch[{STATE!r}]: expected shape [B, {state_dim}], got {list(state.shape)}")
+    out = {"state": state}
+    if with_actions:
+        actions = batch.get(ACTION)
+        if not isinstance(actions, Tensor) or actions.dim() != 3:
+            got = list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__
+            raise ValueError(f"batch[{ACTION!r}]: expected an action chunk of shape [B, H, D] (action_delta_indices "
+                             f"give H steps), got {got}")
+        out["actions"] = hold_last_action(actions, batch.get(PAD))
+    context = task_token(batch.get(TASK), tasks, state.shape[0], state.device)
+    if context is not None:
+        out["context"] = context
+    return out

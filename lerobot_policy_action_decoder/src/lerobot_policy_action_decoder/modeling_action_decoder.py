@@ -1,0 +1,90 @@
+"""`ActionDecoderPolicy`: the core `action_decoder.ActionDecoderPolicy` as a LeRobot policy.
+
+The batch arrives normalised by LeRobot's preprocessor and the actions leave normalised for
+its postprocessor, so the core policy is built with `normalization_mode="identity"`. Keys
+are converted at the boundary (`convert.to_core_batch`): `observation.state` → `state`,
+`action` → `actions` (padded steps hold the last real action), task strings → the one-hot
+task token of a multi-task policy.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Optional
+
+import torch
+from torch import Tensor
+
+from action_decoder import ActionDecoderPolicy as CorePolicy
+from action_decoder import PolicyOutput
+from lerobot.policies.pretrained import PreTrainedPolicy
+
+from .configuration_action_decoder import ActionDecoderConfig
+from .convert import decoder_config, feature_dims, task_list, to_core_batch, unused_inputs, unused_inputs_message
+
+
+class ActionDecoderPolicy(PreTrainedPolicy):
+    """DDPM, flow matching or MeanFlow (`config.decoder_type`) over the Action Expert.
+
+    `forward(batch) -> (loss, {"loss": float})` trains; `select_action` pops from a queue of
+    `n_action_steps` actions per sampled chunk; `predict_action_chunk(batch, sampler="sde",
+    return_logprob=True)` returns the core `PolicyOutput` (`actions` [B, H, D] normalised,
+    `log_prob` [B], `step_log_probs` [B, K], `chain`, `grid`) and `chain_log_prob` re-scores a
+    chain (PPO). `self.decoder` is the core policy itself.
+    """
+
+    config_class = ActionDecoderConfig
+    name = "action_decoder"
+
+    def __init__(self, config: ActionDecoderConfig, dataset_stats: Optional[dict] = None,
+                 dataset_meta: Any = None, **kwargs: Any):
+        super().__init__(config)
+        config.validate_features()
+        if not config.tasks and dataset_meta is not None:
+            config.tasks = task_list(getattr(dataset_meta, "tasks", None))
+        self.state_dim, action_dim = feature_dims(config.input_features, config.output_features)
+        message = unused_inputs_message(unused_inputs(config.input_features))
+        if message:
+            logging.warning(message)
+        self.decoder = CorePolicy(decoder_config(config, self.state_dim, action_dim))
+
+    def _core(self, batch: dict[str, Any], with_actions: bool) -> dict:
+        return to_core_batch(batch, self.config.tasks, self.state_dim, with_actions)
+
+    def get_optim_params(self) -> list:
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def reset(self) -> None:
+        self.decoder.reset()
+
+    def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict]:
+        """The decoder's training loss on a LeRobot batch (normalised, with `action` chunks)."""
+        if reduction != "mean":
+            raise ValueError(f"reduction: expected 'mean' (the decoders' losses are batch means), got {reduction!r}")
+        out = self.decoder.compute_loss(self._core(batch, with_actions=True))
+        return out.loss, {"loss": out.loss.item()}
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Any], sampler: Optional[str] = None,
+                             steps: Optional[int] = None, return_logprob: Optional[bool] = None,
+                             generator=None, noise: Optional[Tensor] = None,
+                             meanflow_velocity: Optional[str] = None):
+        """A chunk [B, H, D] in normalised units (LeRobot's postprocessor un-normalises), or the
+        core `PolicyOutput` when log-probs are returned (`sampler="sde", return_logprob=True`)."""
+        return self.decoder.predict_action_chunk(self._core(batch, with_actions=False), sampler, steps,
+                                                 return_logprob, generator, noise, meanflow_velocity)
+
+    def sample(self, batch: dict[str, Any], **kwargs: Any) -> PolicyOutput:
+        """The core `sample` (differentiable; same arguments as `predict_action_chunk`)."""
+        return self.decoder.sample(self._core(batch, with_actions=False), **kwargs)
+
+    def chain_log_prob(self, batch: dict[str, Any], chain: Tensor, grid: Tensor, **kwargs: Any) -> Tensor:
+        """Per-step log-probs [B, K] of an SDE chain under the current weights (PPO ratio)."""
+        return self.decoder.chain_log_prob(self._core(batch, with_actions=False), chain, grid, **kwargs)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Any], generator=None, **kwargs: Any) -> Tensor:
+        """One normalised action [B, D]; a chunk is sampled every `n_action_steps` calls."""
+        if kwargs.get("noise") is not None:
+            raise ValueError("noise: select_action samples its own chunks; pass noise to predict_action_chunk")
+        return self.decoder.select_action(self._core(batch, with_actions=False), generator=generator)

@@ -1,0 +1,282 @@
+"""The LeRobot policy plugin (`lerobot_policy_action_decoder/`).
+
+Its pure part (`convert`: config mapping, batch keys, padding, task tokens) is tested without
+LeRobot, on the LeRobot-written fixture `tests/data/lerobot/v30_toy`. The LeRobot part (config
+registration, factory, processors, `from_pretrained`) runs where `lerobot` is installed
+(`scripts/lerobot_integration.sh` runs this file in its virtual environment) and is skipped
+elsewhere.
+"""
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "lerobot_policy_action_decoder" / "src"))
+
+from action_decoder import ActionDecoderPolicy as CorePolicy, DecoderConfig  # noqa: E402
+from lerobot_policy_action_decoder import convert  # noqa: E402
+
+FIXTURE = ROOT / "tests" / "data" / "lerobot" / "v30_toy"
+TASKS = ["push the block", "lift the cube"]
+HAS_LEROBOT = importlib.util.find_spec("lerobot") is not None
+
+
+def plugin_cfg(**over):
+    """The plugin config's fields (what `ActionDecoderConfig` holds), as a plain namespace."""
+    core = DecoderConfig()
+    values = {name: getattr(core, name) for name in convert.SHARED}
+    values.update(decoder_type="flow_matching", chunk_size=16, n_action_steps=4, num_inference_steps=None,
+                  flow_prediction=None, hidden_size=32, num_hidden_layers=2, tasks=[])
+    values.update(over)
+    return SimpleNamespace(**values)
+
+
+# ---------------------------------------------------------------------- without LeRobot
+@pytest.mark.parametrize("decoder, steps, head", [("DDPM", 10, "velocity"), ("flow_matching", 10, "velocity"),
+                                                   ("mean_flow", 1, "sample")])
+def test_decoder_config_maps_lerobot_names_and_defaults(decoder, steps, head):
+    cfg = convert.decoder_config(plugin_cfg(decoder_type=decoder, chunk_size=8, n_action_steps=2), 6, 3)
+    assert (cfg.decoder_type, cfg.action_chunk_size, cfg.n_action_steps) == (decoder, 8, 2)
+    assert (cfg.num_inference_timesteps, cfg.flow_prediction) == (steps, head)
+    assert (cfg.state_dim, cfg.action_dim, cfg.hidden_size, cfg.num_hidden_layers) == (6, 3, 32, 2)
+    assert cfg.normalization_mode == "identity"          # LeRobot's processors normalise
+    assert cfg.context_dim is None and cfg.extra["tasks"] == []
+    explicit = convert.decoder_config(plugin_cfg(decoder_type=decoder, num_inference_steps=4,
+                                                 flow_prediction="velocity"), 6, 3)
+    assert (explicit.num_inference_timesteps, explicit.flow_prediction) == (4, "velocity")
+
+
+def test_decoder_config_tasks_become_a_context_token_width():
+    assert convert.decoder_config(plugin_cfg(tasks=TASKS), 6, 3).context_dim == 2
+    assert convert.decoder_config(plugin_cfg(tasks=TASKS[:1]), 6, 3).context_dim is None
+
+
+@pytest.mark.parametrize("over, field", [({"chunk_size": 0}, "policy.chunk_size"),
+                                         ({"num_inference_steps": -1}, "policy.num_inference_steps"),
+                                         ({"decoder_type": "flow"}, "policy.decoder_type"),
+                                         ({"n_action_steps": 20}, "policy.n_action_steps")])
+def test_decoder_config_errors_name_the_plugin_field(over, field):
+    with pytest.raises(ValueError) as err:
+        convert.decoder_config(plugin_cfg(**over), 6, 3)
+    assert str(err.value).startswith(field + ":"), str(err.value)
+
+
+def test_feature_dims_need_state_and_action():
+    ft = lambda *shape: SimpleNamespace(shape=shape)  # noqa: E731
+    feats = {"observation.state": ft(6), "observation.images.top": ft(3, 64, 64)}
+    assert convert.feature_dims(feats, {"action": ft(3)}) == (6, 3)
+    assert convert.unused_inputs(feats) == ["observation.images.top"]
+    line = convert.unused_inputs_message(convert.unused_inputs(feats))
+    assert "observation.images.top" in line and "\n" not in line
+    assert convert.unused_inputs_message([]) is None
+    with pytest.raises(ValueError, match=r"input_features\['observation.state'\]"):
+        convert.feature_dims({"observation.images.top": ft(3, 64, 64)}, {"action": ft(3)})
+    with pytest.raises(ValueError, match=r"output_features\['action'\].*\(2, 3\)"):
+        convert.feature_dims(feats, {"action": ft(2, 3)})
+
+
+def test_hold_last_action_fills_padding_with_the_last_real_action():
+    actions = torch.arange(8.0).reshape(2, 4, 1)                          # [B=2, H=4, D=1]
+    pad = torch.tensor([[False, False, True, True], [False, False, False, False]])
+    held = convert.hold_last_action(actions, pad)
+    assert held[:, :, 0].tolist() == [[0, 1, 1, 1], [4, 5, 6, 7]]
+    assert convert.hold_last_action(actions, None) is actions
+    with pytest.raises(ValueError, match="action_is_pad.*\\[2, 4\\]"):
+        convert.hold_last_action(actions, pad[:, :3])
+
+
+def test_to_core_batch_converts_keys_and_task_strings():
+    state, action = torch.randn(3, 6), torch.randn(3, 4, 2)
+    pad = torch.tensor([[False] * 3 + [True]] * 3)
+    out = convert.to_core_batch({"observation.state": state, "action": action, "action_is_pad": pad,
+                                 "task": ["lift the cube", "push the block", "lift the cube"]}, TASKS, 6, True)
+    assert torch.equal(out["state"], state)
+    assert torch.equal(out["actions"][:, 3], action[:, 2]) and torch.equal(out["actions"][:, :3], action[:, :3])
+    assert out["context"].shape == (3, 1, 2) and out["context"][:, 0].argmax(-1).tolist() == [1, 0, 1]
+    single = convert.to_core_batch({"observation.state": state[:1, None], "task": "push the block"}, TASKS, 6, False)
+    assert single["state"].shape == (1, 6) and single["context"][0, 0].tolist() == [1.0, 0.0]
+    assert "context" not in convert.to_core_batch({"observation.state": state}, TASKS[:1], 6, False)
+
+
+@pytest.mark.parametrize("batch, match", [
+    ({"task": ["push the block"]}, r"batch\['observation.state'\]: missing"),
+    ({"observation.state": torch.randn(1, 5), "task": ["push the block"]}, r"\[B, 6\], got \[1, 5\]"),
+    ({"observation.state": torch.randn(1, 6)}, r"batch\['task'\]: missing"),
+    ({"observation.state": torch.randn(1, 6), "task": ["open the door"]}, r"unknown task\(s\) \['open the door'\]"),
+    ({"observation.state": torch.randn(2, 6), "task": ["push the block"]}, r"expected 2 task strings"),
+])
+def test_to_core_batch_rejects_bad_input_in_one_line(batch, match):
+    with pytest.raises(ValueError, match=match) as err:
+        convert.to_core_batch(batch, TASKS, 6, False)
+    assert "\n" not in str(err.value)
+
+
+def test_task_list_orders_by_task_index():
+    assert convert.task_list({1: "b", 0: "a"}) == ["a", "b"]
+    assert convert.task_list(None) == []
+    pq = pytest.importorskip("pyarrow.parquet")
+    rows = pq.read_table(FIXTURE / "meta" / "tasks.parquet").to_pylist()
+    assert convert.task_list({r["task_index"]: r["__index_level_0__"] for r in rows}) == TASKS
+
+
+def _fixture_batches(horizon: int, batch_size: int, gen: torch.Generator):
+    """LeRobot-style normalised batches from the v30 fixture: chunks of `horizon` actions that
+    LeRobot's `action_delta_indices` would give, padded past each episode's end."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    table = pq.read_table(FIXTURE / "data" / "chunk-000" / "file-000.parquet").to_pydict()
+    stats = json.loads((FIXTURE / "meta" / "stats.json").read_text())
+    norm = lambda x, k: (x - torch.tensor(stats[k]["mean"])) / torch.tensor(stats[k]["std"])  # noqa: E731
+    state = norm(torch.tensor(table["observation.state"]), "observation.state")      # [N, 6]
+    action = norm(torch.tensor(table["action"]), "action")                           # [N, 3]
+    episode = torch.tensor(table["episode_index"])                                    # [N]
+    last = torch.tensor([int((episode == e).nonzero().max()) for e in episode.tolist()])
+    rows = torch.randperm(len(state), generator=gen)[:batch_size]                    # [B]
+    want = rows[:, None] + torch.arange(horizon)                                      # [B, H]
+    pad = want > last[rows, None]
+    idx = torch.minimum(want, last[rows, None])
+    return {"observation.state": state[rows], "action": action[idx], "action_is_pad": pad,
+            "task": [TASKS[i] for i in torch.tensor(table["task_index"])[rows].tolist()]}
+
+
+@pytest.mark.parametrize("decoder", ["DDPM", "flow_matching", "mean_flow"])
+def test_core_policy_learns_from_converted_fixture_batches(decoder, gen):
+    torch.manual_seed(0)
+    cfg = convert.decoder_config(plugin_cfg(decoder_type=decoder, chunk_size=8, tasks=TASKS), 6, 3)
+    policy = CorePolicy(cfg)
+    batch = _fixture_batches(8, 32, gen)
+    assert batch["action_is_pad"].any()                     # the batch reaches past episode ends
+    core = convert.to_core_batch(batch, TASKS, 6, True)
+    policy.compute_loss(core).loss.backward()
+    assert all(p.grad is not None for n, p in policy.named_parameters() if n.startswith("model."))
+    if decoder == "flow_matching":                          # the same noise before and after: a fair comparison
+        fixed = lambda: policy.compute_loss(core, torch.Generator().manual_seed(1)).loss.item()  # noqa: E731
+        before, opt = fixed(), torch.optim.Adam(policy.parameters(), lr=3e-3)
+        for _ in range(20):
+            opt.zero_grad()
+            policy.compute_loss(core).loss.backward()
+            opt.step()
+        assert fixed() < 0.8 * before
+    policy.eval()
+    chunk = policy.predict_action_chunk(convert.to_core_batch(batch, TASKS, 6, False), steps=2)
+    assert chunk.shape == (32, 8, 3) and torch.isfinite(chunk).all()
+
+
+@pytest.mark.skipif(HAS_LEROBOT, reason="checks the package without LeRobot")
+def test_plugin_imports_without_lerobot_and_names_what_is_missing():
+    import lerobot_policy_action_decoder as plugin
+
+    with pytest.raises(ImportError, match="lerobot==0.4.4"):
+        plugin.ActionDecoderPolicy
+
+
+# ---------------------------------------------------------------------- with LeRobot
+lerobot_only = pytest.mark.skipif(not HAS_LEROBOT, reason="LeRobot is not installed (scripts/lerobot_integration.sh)")
+
+
+@pytest.fixture
+def toy_root(tmp_path):
+    root = tmp_path / "v30_toy"
+    shutil.copytree(FIXTURE, root)
+    return root
+
+
+def _lerobot_policy(root, **over):
+    from lerobot.configs.types import FeatureType
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_policy_config, make_pre_post_processors
+
+    meta = LeRobotDatasetMetadata("local/v30_toy", root=root)
+    cfg = make_policy_config("action_decoder", device="cpu", hidden_size=32, num_hidden_layers=2, chunk_size=8,
+                             push_to_hub=False, **over)
+    policy = make_policy(cfg, ds_meta=meta)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=meta.stats)
+    assert all(ft.type in (FeatureType.STATE, FeatureType.ACTION) for ft in
+               {**cfg.input_features, **cfg.output_features}.values())
+    return policy, pre, post, meta
+
+
+@lerobot_only
+def test_lerobot_resolves_the_plugin_type():
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class
+
+    from lerobot_policy_action_decoder import ActionDecoderConfig, ActionDecoderPolicy
+
+    assert PreTrainedConfig.get_choice_class("action_decoder") is ActionDecoderConfig
+    assert get_policy_class("action_decoder") is ActionDecoderPolicy
+    cfg = ActionDecoderConfig(device="cpu")
+    assert cfg.action_delta_indices == list(range(16)) and cfg.observation_delta_indices is None
+    assert cfg.get_optimizer_preset().lr == 1e-3 and cfg.get_optimizer_preset().grad_clip_norm == 1.0
+    with pytest.raises(ValueError, match=r"^policy.chunk_size:"):
+        ActionDecoderConfig(device="cpu", chunk_size=0)
+
+
+@lerobot_only
+@pytest.mark.parametrize("decoder", ["DDPM", "flow_matching", "mean_flow"])
+def test_lerobot_dataset_batch_trains_and_reloads(decoder, toy_root, tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_policy_action_decoder import ActionDecoderPolicy
+
+    torch.manual_seed(0)
+    policy, pre, post, meta = _lerobot_policy(toy_root, decoder_type=decoder)
+    assert policy.config.tasks == TASKS and policy.decoder.config.context_dim == 2
+    ds = LeRobotDataset("local/v30_toy", root=toy_root, delta_timestamps=resolve_delta_timestamps(policy.config, meta))
+    batch = pre(next(iter(torch.utils.data.DataLoader(ds, batch_size=16, shuffle=True))))
+    assert batch["action"].shape == (16, 8, 3) and batch["action_is_pad"].shape == (16, 8)
+    loss, info = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and info["loss"] == pytest.approx(loss.item())
+
+    policy.save_pretrained(tmp_path / "ckpt")
+    pre.save_pretrained(tmp_path / "ckpt")
+    post.save_pretrained(tmp_path / "ckpt")
+    assert json.loads((tmp_path / "ckpt" / "config.json").read_text())["type"] == "action_decoder"
+    again = ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt")
+    assert again.config.tasks == TASKS
+    for k, v in policy.state_dict().items():
+        assert torch.equal(v, again.state_dict()[k]), k
+    pre2, post2 = make_pre_post_processors(again.config, pretrained_path=str(tmp_path / "ckpt"))
+    frame = ds[0]
+    obs = pre2({"observation.state": frame["observation.state"], "task": frame["task"]})
+    action = post2(again.select_action(obs))
+    assert action.shape == (1, 3) and torch.isfinite(action).all()
+    noise = torch.randn(1, 8, 3)
+    assert torch.equal(policy.eval().predict_action_chunk(obs, noise=noise), again.predict_action_chunk(obs, noise=noise))
+
+
+@lerobot_only
+def test_lerobot_policy_reaches_the_sde_and_its_log_probs(toy_root):
+    policy, pre, _, _ = _lerobot_policy(toy_root, decoder_type="mean_flow")
+    obs = pre({"observation.state": torch.randn(6), "task": "lift the cube"})
+    out = policy.eval().predict_action_chunk(obs, sampler="sde", return_logprob=True, steps=4)
+    assert out.actions.shape == (1, 8, 3) and out.step_log_probs.shape == (1, 4)
+    rescored = policy.chain_log_prob(obs, out.chain, out.grid)
+    torch.testing.assert_close(rescored, out.step_log_probs)
+    with pytest.raises(ValueError, match=r"unknown task\(s\) \['open the door'\]"):
+        policy.select_action(pre({"observation.state": torch.randn(6), "task": "open the door"}))
+
+
+@lerobot_only
+def test_lerobot_policy_names_the_camera_keys_it_does_not_use(caplog):
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from lerobot_policy_action_decoder import ActionDecoderConfig, ActionDecoderPolicy
+
+    cfg = ActionDecoderConfig(device="cpu", hidden_size=32, num_hidden_layers=2, input_features={
+        "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
+        "observation.images.top": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32))},
+        output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(3,))})
+    with caplog.at_level("WARNING"):
+        ActionDecoderPolicy(cfg)
+    lines = [r.getMessage() for r in caplog.records if "observation.images.top" in r.getMessage()]
+    assert len(lines) == 1 and "\n" not in lines[0] and "context" in lines[0]
