@@ -61,8 +61,8 @@ def _cache_state(path: Path, num_episodes: int, first_layout: int) -> str:
 
 
 def _read_v20(path: Path) -> tuple[list[dict], list[str], float, dict]:
-    """Episodes, tasks, fps and extra info of a demonstration cache in the v2.0 layout this library
-    wrote before (one ``data/chunk-XXX/episode_XXXXXX.parquet`` per episode, jsonl metadata)."""
+    """Episodes, tasks, fps and extra info of a demonstration cache in the v2.0 layout (one
+    ``data/chunk-000/episode_000000.parquet`` per episode, jsonl metadata)."""
     import pyarrow.parquet as pq
 
     info = json.loads((path / "meta" / "info.json").read_text())
