@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +21,8 @@ TINY = ["--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hi
 
 
 def run(args, env, timeout=300, **kw):
+    """The CLI as a user runs it, from the test's own directory (default outputs land there)."""
+    kw.setdefault("cwd", Path(env["ACTION_DECODER_CACHE"]).parent)
     return subprocess.run([sys.executable, "-m", "action_decoder.cli", *args], env=env, capture_output=True,
                           text=True, timeout=timeout, **kw)
 
@@ -176,6 +179,7 @@ def test_torchrun_two_processes_stay_in_sync(tmp_path, env, decoder):
 def test_torchrun_cli_as_the_readme_writes_it(tmp_path, env, monkeypatch):
     from action_decoder.data import generate_demos
     monkeypatch.setenv("ACTION_DECODER_CACHE", env["ACTION_DECODER_CACHE"])
+    monkeypatch.chdir(Path(env["ACTION_DECODER_CACHE"]).parent)
     generate_demos("reach-v3", 2, 0)
     out = tmp_path / "ddp"
     res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
@@ -244,10 +248,10 @@ def test_train_defaults_to_flow_matching_with_ten_euler_steps():
 
 
 def test_a_second_run_on_a_locked_directory_fails_at_once_and_a_killed_holder_blocks_nothing(tmp_path, env):
-    from action_decoder.train import run_dir_lock
+    from action_decoder.run_dir import run_dir_lock
 
     out = tmp_path / "run"
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom action_decoder.train import run_dir_lock\n"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom action_decoder.run_dir import run_dir_lock\n"
                                "with run_dir_lock(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(120)",
                                str(out)], env=env, stdout=subprocess.PIPE, text=True)
     try:

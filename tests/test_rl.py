@@ -405,7 +405,7 @@ def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
 def test_finetune_refuses_an_output_dir_in_use(tmp_path):
     """Two fine-tuning runs on one directory: the second stops at once, before loading anything."""
     from action_decoder.rl.finetune import finetune
-    from action_decoder.train import run_dir_lock
+    from action_decoder.run_dir import run_dir_lock
 
     out = tmp_path / "ft"
     with run_dir_lock(out):

@@ -8,28 +8,25 @@ included — is computed inside the DDP wrapper's forward, so gradients are all-
 from __future__ import annotations
 
 import contextlib
-import errno
 import gc
 import json
 import math
 import os
-import random
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Literal, Optional
 
-import numpy as np
 import torch
 from torch.utils.data import default_collate
 
 from .config import DecoderConfig
 from .policy import ActionDecoderPolicy
+from .run_dir import (CKPT_DIR, FINAL, LAST, _rng_state, _set_rng_state, _writing, last_checkpoint, resume_checkpoint,
+                      run_dir_lock, save_final, write_checkpoint)
 from .state_layout import shift_positions
 
-CKPT_DIR, LAST, FINAL = "checkpoints", "last", "final"
 
 
 @dataclass
@@ -291,109 +288,6 @@ def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: f
 
 
 # ---------------------------------------------------------------------- checkpoints
-def _rng_state() -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
-
-
-def _set_rng_state(state: dict) -> None:
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
-
-
-def _disk_error(err: BaseException, target: Path, out: Path) -> OSError:
-    """One line for a failed write: what could not be written, why, and what is still intact."""
-    root = target.parent if target.parent.exists() else out
-    full = getattr(err, "errno", None) in (errno.ENOSPC, errno.EDQUOT)
-    with contextlib.suppress(OSError):
-        full = full or shutil.disk_usage(root).free < 2**20        # torch's writer raises RuntimeError
-    why = "no space left on device" if full else (str(err).strip().splitlines() or [type(err).__name__])[-1]
-    kept = last_checkpoint(out)
-    keep = f"the previous checkpoint {kept} is intact" if kept else "no earlier checkpoint exists"
-    return OSError(errno.ENOSPC if full else getattr(err, "errno", None) or errno.EIO,
-                   f"cannot write {target}: {why}; {keep} (free space, then continue with --resume)")
-
-
-@contextlib.contextmanager
-def _writing(target: Path, out: Path, tmp: Optional[Path] = None):
-    """Turn a failed write (full disk, read-only directory) into one line, removing `tmp`."""
-    try:
-        yield
-    except (OSError, RuntimeError) as err:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        raise _disk_error(err, target, out) from None
-
-
-def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
-    """Write `checkpoints/step_N` (policy + `training_state.pt`) through a temporary directory
-    and a rename, then point `checkpoints/last` at it (also atomically): a crash or a full disk
-    leaves the previous checkpoint intact (a full disk raises OSError saying so). Keeps the last two."""
-    root = out / CKPT_DIR
-    final = root / f"step_{step:07d}"
-    tmp = root / f".tmp_step_{step:07d}"
-    with _writing(final, out, tmp):
-        root.mkdir(parents=True, exist_ok=True)
-        shutil.rmtree(tmp, ignore_errors=True)
-        policy.save_pretrained(tmp)
-        torch.save(state, tmp / "training_state.pt")
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        pointer = root / (LAST + ".tmp")
-        pointer.write_text(final.name)
-        os.replace(pointer, root / LAST)
-    for old in sorted(root.glob("step_*"))[:-2]:
-        shutil.rmtree(old, ignore_errors=True)
-    return final
-
-
-def save_final(out: Path, policy) -> Path:
-    """`out/final` in `save_pretrained` format, replaced atomically."""
-    final, tmp = out / FINAL, out / ".tmp_final"
-    with _writing(final, out, tmp):
-        shutil.rmtree(tmp, ignore_errors=True)
-        policy.save_pretrained(tmp)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-    return final
-
-
-LOCK = ".lock"
-
-
-@contextlib.contextmanager
-def run_dir_lock(out: Path, option: str = "--output-dir"):
-    """Hold an exclusive lock on `out/.lock` (created with `out`) while the block runs.
-
-    A second run on the same directory fails at once with one line naming the holder's pid,
-    instead of both writing checkpoints into it. The kernel drops the lock when its process
-    ends, killed or not, so a lock file left behind never blocks a later run. `out` must be a
-    directory or not exist yet; anything else is refused before any work starts."""
-    import fcntl
-
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{option}: expected a directory (new or from an earlier run), got the file {out}")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as err:
-        raise ValueError(f"{option}: cannot write to {out} ({err.strerror})") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-        os.close(fd)
-        raise ValueError(f"{option}: {out} is in use by another run (pid {holder}); wait for it to end "
-                         f"or choose another directory") from None
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode(), 0)
-        yield out
-    finally:
-        os.close(fd)
-
-
 def weight_average(policy, decay: float) -> Optional[torch.optim.swa_utils.AveragedModel]:
     """An exponential moving average of the policy's parameters (None when decay is 0)."""
     if decay == 0:
@@ -412,47 +306,6 @@ def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen
         "step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
         "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
         "history": history, "ema": None if ema is None else ema.state_dict()})
-
-
-def last_checkpoint(out: Path) -> Optional[Path]:
-    """The newest `checkpoints/step_*` that holds a `training_state.pt` (None: no checkpoint).
-
-    Newest by step, not by the `last` pointer, so that a deleted or half-written target does
-    not hide an intact older checkpoint. `resume_checkpoint` also checks that it loads."""
-    steps = sorted((out / CKPT_DIR).glob("step_*"), reverse=True)
-    return next((p for p in steps if (p / "training_state.pt").is_file()), None)
-
-
-def resume_checkpoint(out: Path, device: torch.device) -> Optional[tuple[Path, ActionDecoderPolicy, dict, str]]:
-    """The newest checkpoint of `out` whose config, weights and training state load:
-    (path, policy, training state, a note saying why it is not the one `last` names, or "").
-    None when `out` has no checkpoint; ValueError when it has some but none loads."""
-    root = out / CKPT_DIR
-    pointer = root / LAST
-    named = pointer.read_text(errors="replace").strip() if pointer.is_file() else None
-    skipped = {}
-    for path in sorted(root.glob("step_*"), reverse=True):
-        try:
-            policy = ActionDecoderPolicy.from_pretrained(path, map_location=device)
-            state = torch.load(path / "training_state.pt", map_location="cpu", weights_only=False)
-        except Exception as err:   # any failure to load means: not intact, try the next one
-            skipped[path.name] = (str(err).strip().splitlines() or [type(err).__name__])[0][:120]
-            continue
-        if named == path.name:
-            return path, policy, state, ""
-        if named is None:
-            why = f"{pointer} is missing"
-        elif named in skipped:
-            why = f"{pointer} names {named}, which does not load ({skipped[named]})"
-        elif not (root / named).exists():
-            why = f"{pointer} names {named}, which is missing"
-        else:
-            why = f"{pointer} names {named}, older than {path.name}"
-        return path, policy, state, why
-    if skipped:
-        raise ValueError(f"--resume: no intact checkpoint in {root}: "
-                         + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
-    return None
 
 
 def _fmt(value) -> str:

@@ -22,8 +22,9 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..train import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final, task_context,
-                     write_checkpoint)
+from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final,
+                       write_checkpoint)
+from ..train import task_context
 from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
@@ -232,7 +233,7 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
 
 def finetune(cfg: FinetuneConfig) -> Path:
     """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
-    locked for the run (`train.run_dir_lock`): a second run on it stops at once."""
+    locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once."""
     _check(cfg)
     with run_dir_lock(Path(cfg.output_dir)):
         return _finetune(cfg)
