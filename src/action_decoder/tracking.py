@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from .run_dir import CKPT_DIR, FINAL
+from .run_dir import CKPT_DIR, FINAL, _writing
 
 LOG_FILES = ("train_log.jsonl", "finetune_log.jsonl")
 """The JSON-lines logs of `train` and `finetune`, in their run directories."""
@@ -91,7 +91,8 @@ class RunLogger:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = None if jsonl is None else self.run_dir / jsonl
         if self.jsonl is not None and start_step is not None:
-            _keep_through(self.jsonl, start_step)
+            with _writing(self.jsonl, self.run_dir):
+                _keep_through(self.jsonl, start_step)
         self.events = SummaryWriter(str(self.run_dir), purge_step=None if start_step is None else start_step + 1)
         self.wandb = None
         self._wandb_prefixes: set[str] = set()
@@ -114,7 +115,7 @@ class RunLogger:
                 self._wandb_prefixes.add(prefix)
             self.wandb.log({f"{prefix}/step": step, **scalars})
         if record and self.jsonl is not None:
-            with open(self.jsonl, "a") as f:
+            with _writing(self.jsonl, self.run_dir), open(self.jsonl, "a") as f:
                 f.write(json.dumps({"step": step, **values}) + "\n")
                 f.flush()
 

@@ -527,7 +527,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
                                          f"(now {cfg.lr}) or check the dataset")
             history.append(row)
             if logger is not None:
-                logger.log(done, row, "train", record=True)
+                logger.log(done, row, "train")
             if bar is not None:
                 bar.set_postfix(loss=f"{mean_loss:.4f}", steps_per_s=f"{(done - start) / (time.perf_counter() - t0):.1f}")
         if bar is not None:
