@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
             # training reported its held-out validation (train.load_training_data).
             if cfg.eval_episodes and rank == 0 and closed_loop_env(cfg):
                 run_eval(EvalConfig(checkpoint=str(final), episodes=cfg.eval_episodes, seed=cfg.seed,
-                                    device="cpu"))
+                                    device="cpu", wandb=cfg.wandb, wandb_project=cfg.wandb_project))
         elif isinstance(cfg, FinetuneConfig):
             finetune(cfg)
         elif isinstance(cfg, RecordConfig):

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from .policy import ActionDecoderPolicy
+from .tracking import log_evaluation, require_wandb
 from .train import task_context
 
 
@@ -40,6 +41,10 @@ class EvalConfig:
     """Also plot the hand trajectories next to the JSON summary (same name, .png)."""
     num_envs: int = 10
     device: str = "cpu"
+    wandb: bool = False
+    """Also log the success rates to Weights & Biases (pip install "action-decoder[wandb]"). They always go
+    to TensorBoard: in the checkpoint's run directory at its step, else next to the JSON summary."""
+    wandb_project: str = "action-decoder"
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
@@ -84,6 +89,7 @@ def run_eval(cfg: EvalConfig) -> dict:
 
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
+    require_wandb(cfg.wandb)
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=cfg.device).eval()
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
@@ -125,7 +131,8 @@ def run_eval(cfg: EvalConfig) -> dict:
     }
     name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}_seed{cfg.seed}.json"
     out = Path(cfg.output) if cfg.output else Path(cfg.checkpoint) / name
-    write_summary(summary, results if cfg.plot else None, out)
+    written = write_summary(summary, results if cfg.plot else None, out)
+    log_evaluation(summary, Path(cfg.checkpoint), written, cfg.wandb_project if cfg.wandb else None)
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
 

@@ -26,6 +26,7 @@ from .policy import ActionDecoderPolicy
 from .run_dir import (CKPT_DIR, FINAL, LAST, _rng_state, _set_rng_state, _writing, last_checkpoint, resume_checkpoint,
                       run_dir_lock, save_final, write_checkpoint)
 from .state_layout import shift_positions
+from .tracking import RunLogger, require_wandb
 
 
 
@@ -104,6 +105,10 @@ class TrainConfig:
     """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another available torch device."""
     progress: bool = True
     """A progress bar on stderr, shown only when stderr is a terminal."""
+    wandb: bool = False
+    """Also log to Weights & Biases (pip install "action-decoder[wandb]"; WANDB_MODE=offline works without
+    an account). TensorBoard events and train_log.jsonl are always written to the output directory."""
+    wandb_project: str = "action-decoder"
 
 
 DEFAULT_STEPS = {"DDPM": 10, "flow_matching": 10, "mean_flow": 1}
@@ -288,14 +293,19 @@ def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: f
 
 
 # ---------------------------------------------------------------------- checkpoints
+def ema_decay_at(decay: float, num_averaged) -> float:
+    """The weight average's decay when it has averaged `num_averaged` weights: 1 − (1 + n)^(−3/4),
+    at most `decay` (0 at n = 0: the first update copies the weights)."""
+    return min(decay, 1.0 - (1.0 + float(num_averaged)) ** -0.75)
+
+
 def weight_average(policy, decay: float) -> Optional[torch.optim.swa_utils.AveragedModel]:
     """An exponential moving average of the policy's parameters (None when decay is 0)."""
     if decay == 0:
         return None
 
     def update(averaged: list, current: list, num_averaged: torch.Tensor) -> None:
-        d = min(decay, 1.0 - (1.0 + float(num_averaged)) ** -0.75)
-        torch._foreach_lerp_(averaged, current, 1.0 - d)
+        torch._foreach_lerp_(averaged, current, 1.0 - ema_decay_at(decay, num_averaged))
 
     return torch.optim.swa_utils.AveragedModel(policy, multi_avg_fn=update)
 
@@ -312,7 +322,8 @@ def _fmt(value) -> str:
     return ",".join(map(str, value)) if isinstance(value, list) else str(value)
 
 
-RESUMABLE = ("steps", "checkpoint_every", "log_every", "eval_episodes", "progress", "device", "resume", "output_dir")
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "eval_episodes", "progress", "device", "resume", "output_dir",
+             "wandb", "wandb_project")
 """TrainConfig fields that `--resume` may change: they do not change what is trained."""
 
 
@@ -377,6 +388,7 @@ def _check(cfg: TrainConfig) -> None:
                          f"{cfg.flow_prediction} with --decoder DDPM")
     demo_noise(cfg)
     held_out_count(2, cfg.val_fraction)
+    require_wandb(cfg.wandb)
 
 
 def train(cfg: TrainConfig) -> Path:
@@ -483,15 +495,18 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         # stderr, and only on a terminal: results stay on stdout, and a redirected log gets no bar.
         bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.decoder}", dynamic_ncols=True,
                    file=sys.stderr, disable=None)
+    logger = RunLogger(out, "train_log.jsonl", start, cfg.wandb_project if cfg.wandb else None, "train",
+                       asdict(cfg)) if main else None
     policy.train()
-    t0, running = time.perf_counter(), []
+    t0, running, grad_norms = time.perf_counter(), [], []
+    t_logged = t0
     for step in range(start, cfg.steps):
         idx = torch.randint(len(ds), (local_batch,), generator=data_gen)
         batch = _batch(ds, idx, len(tasks), device, shift, data_gen)
         loss = model(batch, generator=loss_gen).loss
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip)
+        grad_norms.append(torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip).detach())  # before clipping
         optimizer.step()
         scheduler.step()
         if ema is not None:
@@ -500,11 +515,19 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         done = step + 1
         if done % cfg.log_every == 0 or done == cfg.steps:
             mean_loss = float(torch.stack(running).mean())
-            running = []
+            now = time.perf_counter()
+            row = {"step": done, "loss": mean_loss, "lr": scheduler.get_last_lr()[0],
+                   "grad_norm": float(torch.stack(grad_norms).mean()),
+                   "samples_per_s": cfg.batch_size * len(running) / (now - t_logged)}
+            if ema is not None:
+                row["ema_decay"] = ema_decay_at(cfg.ema_decay, int(ema.n_averaged) - 1)
+            running, grad_norms, t_logged = [], [], now
             if not math.isfinite(mean_loss):
                 raise FloatingPointError(f"training loss became {mean_loss} at step {done}; lower --lr "
                                          f"(now {cfg.lr}) or check the dataset")
-            history.append({"step": done, "loss": mean_loss, "lr": scheduler.get_last_lr()[0]})
+            history.append(row)
+            if logger is not None:
+                logger.log(done, row, "train")
             if bar is not None:
                 bar.set_postfix(loss=f"{mean_loss:.4f}", steps_per_s=f"{(done - start) / (time.perf_counter() - t0):.1f}")
         if bar is not None:
@@ -523,6 +546,9 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
             print(f"validation on held-out episodes {log['validation']['episodes']}: "
                   f"val_loss={log['validation']['val_loss']:.4f} "
                   f"val_action_mse={log['validation']['val_action_mse']:.4f}", flush=True)
+            logger.log(cfg.steps, {"loss": log["validation"]["val_loss"],
+                                   "action_mse": log["validation"]["val_action_mse"]}, "val", record=False)
+        logger.close()
         with _writing(out / "train_log.json", out):
             (out / "train_log.json").write_text(json.dumps(log, indent=1))
             if history:

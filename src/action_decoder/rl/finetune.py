@@ -24,6 +24,7 @@ from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
 from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final,
                        write_checkpoint)
+from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
@@ -130,6 +131,10 @@ class FinetuneConfig:
     checkpoint_every: int = 5
     """Iterations between resumable checkpoints."""
     resume: bool = False
+    wandb: bool = False
+    """Also log to Weights & Biases (pip install "action-decoder[wandb]"). TensorBoard events and
+    finetune_log.jsonl are always written to the output directory, per iteration, at its env steps."""
+    wandb_project: str = "action-decoder"
 
 
 def _check(cfg: FinetuneConfig) -> None:
@@ -152,6 +157,7 @@ def _check(cfg: FinetuneConfig) -> None:
         raise ValueError(f"--trained-steps: expected between 1 and --sde-steps={cfg.sde_steps}, got {cfg.trained_steps}")
     if not (0 < cfg.gamma <= 1 and 0 <= cfg.gae_lambda <= 1 and 0 < cfg.tau <= 1):
         raise ValueError("--gamma/--gae-lambda/--tau: expected gamma, tau in (0, 1] and gae-lambda in [0, 1]")
+    require_wandb(cfg.wandb)
 
 
 def _resolve_task(cfg: FinetuneConfig, trained: list[str]) -> tuple[str, int]:
@@ -290,6 +296,9 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         raise ValueError(f"--output-dir: {out} already holds a fine-tuning run; pass --resume to continue it "
                          f"or choose another directory")
 
+    logger = RunLogger(out, "finetune_log.jsonl", env_steps, cfg.wandb_project if cfg.wandb else None, "finetune",
+                       asdict(cfg))
+
     def make_batch(states: torch.Tensor) -> dict:
         ctx = task_context(torch.full((len(states),), task_index), num_tasks)
         return {"state": states.float(), **ctx}
@@ -305,6 +314,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                            task_index=task_index)
             row[f"success_{sampler}"] = res["success_rate"]
         evals.append(row)
+        logger.log(env_steps, {"success_sde": row["success_sde"], "success_ode": row["success_ode"]}, "eval",
+                   record=False)
         print(f"eval @ {env_steps} env steps: success sde={row['success_sde']:.3f} ode={row['success_ode']:.3f}",
               flush=True)
 
@@ -360,11 +371,13 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
         row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
                "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), "sigma_mult": mult, **stats, "kl_bc": kl_rollout,
+               "decisions": len(rewards), "sigma_mult": mult, "sigma_scale": cfg.sigma * mult, **stats,
+               "kl_bc": kl_rollout,
                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
         history.append(row)
+        logger.log(env_steps, row, "rl")
         ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
                 f"epochs {row['epochs']}" if "ratio_min" in row else ""
         print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
@@ -384,6 +397,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     for env in envs:
         env.close()
     final = save_final(out, policy)
+    logger.close()
     (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
                                                        "evals": evals}, indent=1))
     plot_curves(history, evals, out / "finetune.png", f"{cfg.algo} on {task}")
