@@ -57,9 +57,11 @@ def test_eval_video_writes_a_grid_mp4_with_one_frame_per_observation(rendering, 
                "--video", "--video-episodes", "2", "--video-size", "48", "--video-fps", "20", "--plot",
                "--sampler", "sde", "--steps", "3"], env, tmp_path)
     assert res.returncode == 0, res.stderr
+    assert "Traceback" not in res.stderr and "Exception ignored" not in res.stderr, "renderers are closed"
     stem = checkpoint / "eval_sde_k3_n8_seed0_t12"
     video = stem.parent / f"{stem.name}_reach-v3.mp4"
-    assert f"video: {video}" in res.stdout.splitlines() and res.stdout.strip().splitlines()[-1].startswith("success_rate=")
+    lines = res.stdout.strip().splitlines()
+    assert f"video: {video}" in lines and lines[-1].startswith("success_rate=")
     summary = json.loads(stem.with_suffix(".json").read_text())
     lengths, successes = summary["results"][0]["lengths"], summary["results"][0]["successes"]
     assert summary["max_steps"] == 12 and max(lengths) <= 12
@@ -113,7 +115,8 @@ def test_frames_are_framed_by_outcome_and_tiled_with_ended_episodes_held():
     marked = [framed(e, ok) for e, ok in zip(episodes, (True, False, True))]
     width = 2                                                          # S/32, at least 2 px
     assert (marked[0][:, 0, 0] == render.GREEN).all() and (marked[1][:, -1, size // 2] == render.RED).all()
-    assert (marked[0][:, width:-width, width:-width] == 105).all() and (marked[0][:, width - 1, size // 2] == render.GREEN).all()
+    assert (marked[0][:, width:-width, width:-width] == 105).all(), "the picture inside the border is kept"
+    assert (marked[0][:, width - 1, size // 2] == render.GREEN).all() and (marked[0][:, width, size // 2] == 105).all()
     grid = tile(marked)                                                # 3 episodes: 2 columns, 2 rows
     assert grid.shape == (5, 2 * size, 2 * size, 3)
     np.testing.assert_array_equal(grid[:, :size, :size], marked[0])
@@ -141,11 +144,22 @@ def test_per_episode_videos_play_back_with_their_frame_counts(tmp_path):
         assert (g > 150 > r) if ok else (r > 150 > g)
 
 
+def test_an_unknown_camera_names_the_cameras_there_are():
+    from action_decoder.envs import make_env
+
+    env = make_env("metaworld/reach", seed=0)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"^--video-camera: expected one of topview, corner, corner2, .*got 'front'$"):
+        EpisodeCamera(episodes=1, size=32, camera="front")(0, env)
+    env.close()
+
+
 @pytest.mark.parametrize("options, message", [
     ({"video_size": 64}, "--video-size: take effect only with --video"),
     ({"video": True, "video_size": 100}, "--video-size: expected a multiple of 16"),
     ({"video": True, "video_episodes": 0}, "--video-episodes: expected an integer >= 1"),
     ({"video": True, "video_fps": -1.0}, "--video-fps: expected a number >= 0"),
+    ({"max_steps": 0}, "--max-steps: expected 1..500"),
 ])
 def test_video_options_are_checked_before_any_episode(options, message):
     with pytest.raises(ValueError, match=f"^{message}"):

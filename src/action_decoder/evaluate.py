@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import sys
@@ -104,6 +105,9 @@ def run_eval(cfg: EvalConfig) -> dict:
 
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
+    if not 1 <= cfg.max_steps <= MAX_EPISODE_STEPS:
+        raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
+                         f"got {cfg.max_steps}")
     check_video_options(cfg)
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=cfg.device).eval()
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
@@ -121,7 +125,8 @@ def run_eval(cfg: EvalConfig) -> dict:
     steps = cfg.steps or None
     generator = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
     fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
-    results, videos, video_dir = [], {}, tempfile.TemporaryDirectory(prefix="action_decoder_video_")
+    results, videos = [], {}
+    video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:
         index = trained.index(canonical_task(task)) if len(trained) > 1 else 0
         wins = []
@@ -134,14 +139,15 @@ def run_eval(cfg: EvalConfig) -> dict:
 
         camera = EpisodeCamera(cfg.video_episodes, cfg.video_size, cfg.video_camera) if cfg.video else None
         try:
-            res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec, max_steps=cfg.max_steps,
-                           num_envs=cfg.num_envs, task_index=index, progress=progress, record=cfg.plot, on_step=camera)
+            res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
+                           max_steps=cfg.max_steps, num_envs=cfg.num_envs, task_index=index, progress=progress,
+                           record=cfg.plot, on_step=camera)
         finally:
             if camera is not None:
                 camera.close()
         if camera is not None:      # encoded now (frames are large), moved next to the summary at the end
-            for path in camera.write(res["successes"], cfg.video_layout, cfg.video_fps, Path(video_dir.name), f"_{task}"):
-                videos[path.name] = path
+            encoded = camera.write(res["successes"], cfg.video_layout, cfg.video_fps, Path(video_dir.name), f"_{task}")
+            videos.update((path.name, path) for path in encoded)
         results.append(res)
         print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
     summary = {
@@ -172,7 +178,8 @@ def check_video_options(cfg: EvalConfig) -> None:
     if cfg.video_episodes < 1:
         raise ValueError(f"--video-episodes: expected an integer >= 1, got {cfg.video_episodes}")
     if not (16 <= cfg.video_size <= 2048 and cfg.video_size % 16 == 0):
-        raise ValueError(f"--video-size: expected a multiple of 16 in [16, 2048] (H.264 macroblocks), got {cfg.video_size}")
+        raise ValueError(f"--video-size: expected a multiple of 16 in [16, 2048] (H.264 macroblocks), "
+                         f"got {cfg.video_size}")
     if not cfg.video_fps >= 0:
         raise ValueError(f"--video-fps: expected a number >= 0 (0: real time), got {cfg.video_fps}")
     from .envs.render import check_rendering

@@ -7,8 +7,9 @@ missing system library ends the run with one line instead of a traceback from th
 
 Frames: one per observation (the first after reset, then one after each action, so an episode
 of ``T`` steps gives ``T + 1`` frames), square, upright (Meta-World's corner cameras look
-upside down; their frames are turned by 180°), without shadows and reflections (a 4096² shadow
-map dominates software rendering: ~8× slower with it on llvmpipe). Each frame carries a border
+upside down; their frames are turned by 180°), without shadows and reflections (Meta-World's
+4096² shadow map makes a 224-px frame about 10× slower on Mesa's software renderer,
+llvmpipe). Each frame carries a border
 in the episode's outcome colour, green for a success and red for a failure, from its first
 frame. Layout ``grid`` tiles the filmed episodes of a task in one video (in episode order, row
 by row); a tile whose episode has ended holds its last frame. Layout ``episodes`` writes one
@@ -64,7 +65,8 @@ def choose_backend(environ=os.environ, find_library=ctypes.util.find_library) ->
         if find_library(library):
             environ["MUJOCO_GL"] = backend
             return backend
-    raise ValueError(f"--video: offscreen rendering needs libEGL or libOSMesa, and neither is installed; {INSTALL_HINT}")
+    raise ValueError(f"--video: offscreen rendering needs libEGL or libOSMesa, and neither is installed; "
+                     f"{INSTALL_HINT}")
 
 
 def check_rendering() -> str:
