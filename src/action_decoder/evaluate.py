@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 import sys
-from dataclasses import dataclass
+import tempfile
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -39,6 +42,23 @@ class EvalConfig:
     so evaluations with other settings, the one at the end of training included, are all kept)."""
     plot: bool = False
     """Also plot the hand trajectories next to the JSON summary (same name, .png)."""
+    max_steps: int = 500
+    """Steps after which an episode counts as a failure (Meta-World's cap, 500; below it the JSON name ends
+    in _t<max_steps>)."""
+    video: bool = False
+    """Film the first --video-episodes episodes of each task offscreen (MuJoCo with MUJOCO_GL=egl, else
+    osmesa) into H.264 mp4s next to the JSON summary: <stem>_<task>.mp4 (grid) or
+    <stem>_<task>_episode<j>.mp4; borders green for a success, red for a failure (envs/render.py)."""
+    video_episodes: int = 4
+    """Episodes filmed per task (the first ones, by episode number)."""
+    video_layout: Literal["grid", "episodes"] = "grid"
+    """grid: one video per task, an ended episode holds its last frame; episodes: one video per episode."""
+    video_camera: str = "corner2"
+    """A Meta-World camera: topview, corner, corner2, corner3, corner4, behindGripper, gripperPOV."""
+    video_size: int = 224
+    """Frame side in pixels, a multiple of 16 (H.264 macroblocks)."""
+    video_fps: float = 0
+    """Frames per second (0: real time, one frame per env step: 80 for Meta-World)."""
     num_envs: int = 10
     device: str = "cpu"
     wandb: bool = False
@@ -85,11 +105,16 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
 
 
 def run_eval(cfg: EvalConfig) -> dict:
-    from .envs import canonical_task, evaluate, resolve_tasks
+    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
+    from .envs.render import EpisodeCamera
 
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
+    if not 1 <= cfg.max_steps <= MAX_EPISODE_STEPS:
+        raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
+                         f"got {cfg.max_steps}")
+    check_video_options(cfg)
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=cfg.device).eval()
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
@@ -106,7 +131,8 @@ def run_eval(cfg: EvalConfig) -> dict:
     steps = cfg.steps or None
     generator = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
     fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
-    results = []
+    results, videos = [], {}
+    video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:
         index = trained.index(canonical_task(task)) if len(trained) > 1 else 0
         wins = []
@@ -117,28 +143,61 @@ def run_eval(cfg: EvalConfig) -> dict:
             print(f"[{task}] episode {episode + 1}/{total}: {'success' if success else 'failure'} "
                   f"({done}/{total} done, running success {np.mean(wins):.2f})", flush=True)
 
-        res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
-                       num_envs=cfg.num_envs, task_index=index, progress=progress, record=cfg.plot)
+        camera = EpisodeCamera(cfg.video_episodes, cfg.video_size, cfg.video_camera) if cfg.video else None
+        try:
+            res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
+                           max_steps=cfg.max_steps, num_envs=cfg.num_envs, task_index=index, progress=progress,
+                           record=cfg.plot, on_step=camera)
+        finally:
+            if camera is not None:
+                camera.close()
+        if camera is not None:      # encoded now (frames are large), moved next to the summary at the end
+            encoded = camera.write(res["successes"], cfg.video_layout, cfg.video_fps, Path(video_dir.name), f"_{task}")
+            videos.update((path.name, path) for path in encoded)
         results.append(res)
         print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
     summary = {
         "checkpoint": str(cfg.checkpoint), "decoder_type": policy.config.decoder_type,
         "sampler": policy.resolve_sampler(cfg.sampler), "steps": policy.resolve_steps(cfg.sampler, steps),
-        "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec,
+        "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec, "max_steps": cfg.max_steps,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
-    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}_seed{cfg.seed}.json"
+    cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
+    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}_seed{cfg.seed}{cap}.json"
     out = Path(cfg.output) if cfg.output else Path(cfg.checkpoint) / name
-    written = write_summary(summary, results if cfg.plot else None, out)
+    with video_dir:
+        written = write_summary(summary, results if cfg.plot else None, out, videos)
     log_evaluation(summary, Path(cfg.checkpoint), written, cfg.wandb_project if cfg.wandb else None)
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
 
 
-def write_summary(summary: dict, plot_results: Optional[list], out: Path) -> Optional[Path]:
-    """Write the JSON summary (and the plot, same name .png) to `out`; returns where it went.
+def check_video_options(cfg: EvalConfig) -> None:
+    """Refuse video options without --video or out of range, and unavailable rendering, before any episode."""
+    changed = [f"--{f.name.replace('_', '-')}" for f in fields(cfg)
+               if f.name.startswith("video_") and getattr(cfg, f.name) != f.default]
+    if not cfg.video:
+        if changed:
+            raise ValueError(f"{', '.join(changed)}: take effect only with --video, which was not given")
+        return
+    if cfg.video_episodes < 1:
+        raise ValueError(f"--video-episodes: expected an integer >= 1, got {cfg.video_episodes}")
+    if not (16 <= cfg.video_size <= 2048 and cfg.video_size % 16 == 0):
+        raise ValueError(f"--video-size: expected a multiple of 16 in [16, 2048] (H.264 macroblocks), "
+                         f"got {cfg.video_size}")
+    if not cfg.video_fps >= 0:
+        raise ValueError(f"--video-fps: expected a number >= 0 (0: real time), got {cfg.video_fps}")
+    from .envs.render import check_rendering
+
+    check_rendering()
+
+
+def write_summary(summary: dict, plot_results: Optional[list], out: Path,
+                  videos: Optional[dict[str, Path]] = None) -> Optional[Path]:
+    """Write the JSON summary (and the plot, same name .png; each video of `videos`, name suffix → encoded
+    file, as <stem><suffix>) to `out`'s directory; returns where the summary went.
 
     An evaluation can take minutes, so a place that cannot be written (a read-only checkpoint
     directory) does not end it with a traceback: the files go to the current directory under the
@@ -150,34 +209,53 @@ def write_summary(summary: dict, plot_results: Optional[list], out: Path) -> Opt
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(summary, indent=1))
             if plot_results is not None:
-                plot_trajectories(plot_results, path.with_suffix(".png"))
+                plot_trajectories(plot_results, path.with_suffix(".png"), summary)
+            for suffix, encoded in (videos or {}).items():
+                shutil.copyfile(encoded, path.with_name(path.stem + suffix))
         except OSError as err:
             tried.append(f"{path} ({err.strerror or err})")
             continue
         if tried:
             print(f"action-decoder: warning: cannot write {tried[0]}; wrote {path} instead",
                   file=sys.stderr, flush=True)
+        for suffix in videos or {}:
+            print(f"video: {path.with_name(path.stem + suffix)}", flush=True)
         return path
     print(f"action-decoder: warning: the summary was not saved: cannot write {' or '.join(tried)}",
           file=sys.stderr, flush=True)
     return None
 
 
-def plot_trajectories(results: list, path: Path) -> None:
-    """Top-down (x, y) hand paths, green for successes, red for failures; goals as stars."""
+def plot_trajectories(results: list, path: Optional[Path], summary: dict):
+    """Top-down (x, y) hand paths per task, green for successes and red for failures, from a circle (the
+    start) to a star (the goal), with a legend; the title names the task(s), decoder, sampler, K and
+    re-planning. Saved to `path` (unless None); returns the matplotlib Figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(results), figsize=(max(4 * len(results), 5), 5), squeeze=False)
     for ax, res in zip(axes[0], results):
         for traj, ok in zip(res["trajectories"], res["successes"]):
-            hand = np.asarray(traj["hand"])
+            hand = np.asarray(traj["hand"])                                       # [T, 3]
             ax.plot(hand[:, 0], hand[:, 1], color="tab:green" if ok else "tab:red", alpha=0.6, lw=1)
+            ax.scatter(hand[0, 0], hand[0, 1], marker="o", facecolors="none", edgecolors="k", s=20, lw=0.8)
             ax.scatter(*traj["goal"][:2], marker="*", color="k", s=30)
+        wins = int(sum(res["successes"]))
+        ax.legend(handles=[Line2D([], [], color="tab:green", label=f"success ({wins})"),
+                           Line2D([], [], color="tab:red", label=f"failure ({len(res['successes']) - wins})"),
+                           Line2D([], [], ls="", marker="o", mfc="none", mec="k", label="start"),
+                           Line2D([], [], ls="", marker="*", color="k", label="goal")], fontsize=7, loc="best")
         ax.set(title=f"{res['task']}: {res['success_rate']:.0%}", xlabel="x", ylabel="y")
         ax.set_aspect("equal", adjustable="datalim")
+    tasks = [r["task"] for r in results]
+    fig.suptitle(f"{', '.join(tasks) if len(tasks) <= 3 else f'{len(tasks)} tasks'}: {summary['decoder_type']}\n"
+                 f"sampler {summary['sampler']}, K = {summary['steps']}, {summary['n_action_steps']} actions per plan",
+                 fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    if path is not None:
+        fig.savefig(path, dpi=110)
     plt.close(fig)
+    return fig

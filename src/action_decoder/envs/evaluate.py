@@ -68,6 +68,7 @@ def evaluate(
     task_index: int = 0,
     progress: Callable[[int, int, int, bool], None] | None = None,
     record: bool = False,
+    on_step: Callable[[int, SeededLayoutEnv], None] | None = None,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
@@ -76,7 +77,9 @@ def evaluate(
     and plan index if it takes them (see ``PolicyFn``); ``progress(done, total, episode, success)`` is
     called after each finished episode: ``done`` finished so far, ``episode`` its index in [0, total).
     ``record=True`` adds ``trajectories``: per episode the hand positions ``[T, 3]`` (obs[0:3]) and
-    the goal (obs[36:39]). Returns ``task``, ``success_rate``, and per
+    the goal (obs[36:39]). ``on_step(episode, env)`` is called after each reset and after each step
+    of an episode, before the next reset of its env (``envs.render.EpisodeCamera`` films episodes so).
+    Returns ``task``, ``success_rate``, and per
     episode ``successes``, ``lengths``, ``returns``, ``seeds``, plus ``env_steps`` and
     ``wall_time_s``.
     """
@@ -107,6 +110,8 @@ def evaluate(
             if record:
                 hands[next_episode].append(obs[slot][:3].copy())
                 goals[next_episode] = obs[slot][36:39].copy()
+            if on_step is not None:
+                on_step(next_episode, envs[slot])
             slot_episode[slot], next_episode = next_episode, next_episode + 1
 
     for slot in range(len(envs)):
@@ -128,6 +133,8 @@ def evaluate(
             lengths[ep] += 1
             if record:
                 hands[ep].append(obs[s][:3].copy())
+            if on_step is not None:
+                on_step(ep, envs[s])
             returns[ep] += float(reward)
             successes[ep] = bool(info["success"])
             if successes[ep] or lengths[ep] >= max_steps:
