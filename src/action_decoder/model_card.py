@@ -135,7 +135,8 @@ def _policy_table(config: DecoderConfig, num_parameters: int) -> list[str]:
             f"{config.n_action_steps} executed per plan |",
             f"| state | {config.state_dim}-d, {config.state_layout} layout, {config.normalization_mode} normalisation |",
             f"| conditioning | {' and '.join(c for c in conditioning if c) or 'state only'} |",
-            f"| network | Action Expert transformer: {config.num_hidden_layers} layers, hidden size "
+            f"| network | Action Expert transformer: {config.num_hidden_layers} "
+            f"layer{'s' if config.num_hidden_layers != 1 else ''}, hidden size "
             f"{config.hidden_size}, {config.num_attention_heads} heads ({config.num_key_value_heads} KV), "
             f"{num_parameters:,} parameters |"]
 
