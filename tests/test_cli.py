@@ -373,15 +373,15 @@ def test_full_disk_gives_one_line_and_keeps_the_previous_checkpoint(tmp_path, mo
     from action_decoder import cli, run_dir
 
     ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
-    real_save, calls = run_dir.save_file, []
+    real_save, calls = run_dir.save_state, []
 
-    def save(tensors, f, *a, **k):              # the second checkpoint's training state finds the disk full
-        calls.append(f)
+    def save(state, directory):                 # the second checkpoint's training state finds the disk full
+        calls.append(directory)
         if len(calls) == 2:
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real_save(tensors, f, *a, **k)
+        return real_save(state, directory)
 
-    monkeypatch.setattr(run_dir, "save_file", save)
+    monkeypatch.setattr(run_dir, "save_state", save)
     assert cli.main(_ds_args(ds, out, "--steps", "4", "--checkpoint-every", "2")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no space left" in err[0] and "step_0000002 is intact" in err[0], err

@@ -23,7 +23,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
+from safetensors.torch import save as tensors_to_bytes
 
 from .policy import ActionDecoderPolicy
 
@@ -90,7 +91,8 @@ def save_state(state: dict, directory: Path) -> None:
     bit for bit, and neither file is a pickle."""
     tensors: dict = {}
     encoded = _encode(state, tensors, "state")
-    save_file(tensors, str(directory / STATE_TENSORS), metadata={"format": STATE_FORMAT})
+    # Serialised in memory, written by Python: a full disk raises OSError (ENOSPC), not safetensors' own error.
+    (directory / STATE_TENSORS).write_bytes(tensors_to_bytes(tensors, metadata={"format": STATE_FORMAT}))
     (directory / STATE_JSON).write_text(json.dumps({"format": STATE_FORMAT, "state": encoded}))
 
 
