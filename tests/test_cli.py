@@ -353,7 +353,7 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, cli_main):
     ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
     ckpts = out / "checkpoints"
     assert cli_main(_ds_args(ds, out, "--steps", "4", "--checkpoint-every", "2")).returncode == 0
-    (ckpts / "step_0000004" / "training_state.pt").write_bytes(b"garbage")
+    (ckpts / "step_0000004" / "training_state.safetensors").write_bytes(b"garbage")
     res = cli_main(_ds_args(ds, out, "--steps", "6", "--checkpoint-every", "2", "--resume"))
     assert res.returncode == 0, res.stderr
     lines = [line for line in res.stdout.splitlines() if line.startswith("resume:")]
@@ -370,22 +370,22 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(tmp_path, cli_main):
 def test_full_disk_gives_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch, capsys):
     import errno
 
-    from action_decoder import cli
+    from action_decoder import cli, run_dir
 
     ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
-    real_save, calls = torch.save, []
+    real_save, calls = run_dir.save_state, []
 
-    def save(obj, f, *a, **k):                  # the second checkpoint finds the disk full
-        calls.append(f)
+    def save(state, directory):                 # the second checkpoint's training state finds the disk full
+        calls.append(directory)
         if len(calls) == 2:
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real_save(obj, f, *a, **k)
+        return real_save(state, directory)
 
-    monkeypatch.setattr(torch, "save", save)
+    monkeypatch.setattr(run_dir, "save_state", save)
     assert cli.main(_ds_args(ds, out, "--steps", "4", "--checkpoint-every", "2")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no space left" in err[0] and "step_0000002 is intact" in err[0], err
     kept = out / "checkpoints" / "step_0000002"
     assert ActionDecoderPolicy.from_pretrained(kept) is not None
-    assert torch.load(kept / "training_state.pt", weights_only=False)["step"] == 2
+    assert run_dir.load_state(kept)["step"] == 2
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["last", "step_0000002"]

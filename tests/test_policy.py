@@ -126,7 +126,7 @@ def test_chain_log_prob_ratio_one_and_gradient():
 def test_save_load_identical_actions(tmp_path, decoder_type):
     policy = make(decoder_type).eval()
     policy.save_pretrained(tmp_path / "ckpt")
-    assert {p.name for p in (tmp_path / "ckpt").iterdir()} == {"config.json", "model.safetensors"}
+    assert {p.name for p in (tmp_path / "ckpt").iterdir()} == {"config.json", "model.safetensors", "README.md"}
     loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt").eval()
     b = batch(actions=False)
     a = policy.predict_action_chunk(b, generator=torch.Generator().manual_seed(5))

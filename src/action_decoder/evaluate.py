@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -170,8 +171,29 @@ def run_eval(cfg: EvalConfig) -> dict:
     with video_dir:
         written = write_summary(summary, results if cfg.plot else None, out, videos)
     log_evaluation(summary, Path(cfg.checkpoint), written, cfg.wandb_project if cfg.wandb else None)
+    update_card(Path(cfg.checkpoint), policy, summary, [r["task"] for r in results])
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
+
+
+def update_card(checkpoint: Path, policy: ActionDecoderPolicy, summary: dict, tasks: list) -> None:
+    """Add this evaluation's row to the model card of a local, writable checkpoint directory (a Hub
+    snapshot or a read-only directory keeps its card; another failed write says so in one line)."""
+    from huggingface_hub.constants import HF_HUB_CACHE
+
+    from .model_card import record_result
+
+    if not checkpoint.is_dir() or not os.access(checkpoint, os.W_OK) \
+            or checkpoint.resolve().is_relative_to(Path(HF_HUB_CACHE).resolve()):
+        return
+
+    try:
+        record_result(checkpoint, policy, summary, tasks)
+    except PermissionError:
+        return
+    except OSError as err:
+        print(f"action-decoder: warning: the model card in {checkpoint} was not updated ({err.strerror or err})",
+              file=sys.stderr, flush=True)
 
 
 def check_video_options(cfg: EvalConfig) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import numbers
+import re
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
@@ -16,8 +17,10 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
 import torch
+from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
+from . import model_card
 from .config import MEANFLOW_VELOCITIES, SDE_MIN_STEPS, DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
@@ -59,8 +62,10 @@ class Bound:
     flow_velocity: Optional[Callable[[Tensor, Tensor], Tensor]] = None
 
 
-class ActionDecoderPolicy(nn.Module):
-    """A LeRobot-style policy over any of the three decoders (see API.md)."""
+class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_card.LIBRARY_NAME,
+                          pipeline_tag="robotics", tags=["robotics", model_card.LIBRARY_NAME]):
+    """A LeRobot-style policy over any of the three decoders (see API.md). Checkpoints use the Hub's
+    `PyTorchModelHubMixin` layout (`save_pretrained`, `from_pretrained`, `push_to_hub`)."""
 
     def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None):
         super().__init__()
@@ -348,24 +353,52 @@ class ActionDecoderPolicy(nn.Module):
         self._queue.clear()
 
     # ------------------------------------------------------------------ persistence
-    def save_pretrained(self, path: str | Path) -> None:
-        """`config.json` + `model.safetensors` (weights, normalisation stats, learnable σ)."""
+    def save_pretrained(self, save_directory: str | Path, *, config: Any = None, repo_id: Optional[str] = None,
+                        push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,
+                        **push_to_hub_kwargs) -> Optional[str]:
+        """`config.json` (format_version 2, every DecoderConfig field) + `model.safetensors` (weights,
+        normalisation stats, learnable σ) + `README.md` (the model card, `model_card.py`): the layout
+        `PyTorchModelHubMixin` reads and `push_to_hub` uploads (`push_to_hub=True` uploads to `repo_id`,
+        default the directory's name; returns the commit's url). The card keeps the measured results
+        of these exact weights (from the checkpoint this policy was loaded from, or already in the
+        directory); results of other weights are dropped."""
         from safetensors.torch import save_file
 
-        path = Path(path)
+        if config is not None and config is not self.config:
+            raise ValueError(f"config: the policy saves its own DecoderConfig (policy.config); got {type(config).__name__}")
+        if model_card_kwargs:
+            raise ValueError(f"model_card_kwargs: the card is built from the policy's config and measured results; "
+                             f"got {sorted(model_card_kwargs)}")
+        path = Path(save_directory)
         path.mkdir(parents=True, exist_ok=True)
         self.config.to_json(path / CONFIG_NAME)
         tensors = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         tmp = path / (WEIGHTS_NAME + ".tmp")
         save_file(tensors, str(tmp), metadata={"format": "pt", "library": "action_decoder"})
         tmp.replace(path / WEIGHTS_NAME)
+        known = getattr(self, "_card_results", []) + model_card.read_results(path)
+        results = []
+        if known:
+            for row in model_card.carried_results(known, model_card.weights_digest(tensors)):
+                results = model_card.merge_result(results, row)
+        model_card.write_card(path, self.config, sum(p.numel() for p in self.parameters()), results)
+        if push_to_hub:
+            return self.push_to_hub(repo_id or path.name, **push_to_hub_kwargs)
+        return None
 
     @classmethod
-    def from_pretrained(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "ActionDecoderPolicy":
+    def from_pretrained(cls, pretrained_model_name_or_path: str | Path, map_location: str | torch.device = "cpu", *,
+                        revision: Optional[str] = None, cache_dir: Optional[str | Path] = None,
+                        force_download: bool = False, token: Optional[str | bool] = None,
+                        local_files_only: bool = False) -> "ActionDecoderPolicy":
+        """Load a directory written by `save_pretrained`, or a Hub repo id (`owner/name`, fetched with
+        `huggingface_hub.snapshot_download`; `revision`, `cache_dir`, `token`... go to it) when no such
+        local directory exists. An unreachable Hub or unknown repo is one ValueError line."""
         from safetensors import SafetensorError
         from safetensors.torch import load_file
 
-        path = Path(path)
+        path = _checkpoint_dir(pretrained_model_name_or_path, revision=revision, cache_dir=cache_dir,
+                               force_download=force_download, token=token, local_files_only=local_files_only)
         for name in (CONFIG_NAME, WEIGHTS_NAME):
             if not (path / name).is_file():
                 raise FileNotFoundError(f"checkpoint: {path} has no {name}; expected a directory written "
@@ -384,7 +417,30 @@ class ActionDecoderPolicy(nn.Module):
             raise ValueError(f"checkpoint: {path} does not match its config.json: missing {missing[:5]}, "
                              f"unexpected {unexpected[:5]}, wrong shapes {wrong[:5]}")
         policy.load_state_dict(tensors)
+        results = model_card.read_results(path)
+        # The measured results of these weights, so that saving (or pushing) them again keeps them.
+        policy._card_results = model_card.carried_results(results, model_card.weights_digest(tensors)) if results else []
         return policy.to(map_location)
+
+
+HUB_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
+
+
+def _checkpoint_dir(name: str | Path, **hub) -> Path:
+    """A local checkpoint directory, or the snapshot of the Hub repo `name` names (`owner/name`)."""
+    path = Path(name).expanduser()
+    if path.exists() or not HUB_REPO_ID.match(str(name)):
+        return path
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(str(name), allow_patterns=[CONFIG_NAME, WEIGHTS_NAME, model_card.CARD_NAME],
+                                      **hub))
+    except Exception as err:    # offline, unknown repo, no access: huggingface_hub raises many kinds
+        why = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ValueError(f"checkpoint: {name!r} is not a local directory, and the Hub repo {name!r} could not be "
+                         f"fetched ({type(err).__name__}: {why}); pass a directory written by save_pretrained, "
+                         f"or check the repo id and the connection") from None
 
 
 def _tensor(batch: Mapping[str, Any], key: str, shape: str) -> Tensor:

@@ -1,7 +1,10 @@
 """A run's output directory: its lock, atomic checkpoints, and the checkpoint a resume continues from.
 
     <out>/.lock                      held by the run that writes here (flock)
-    <out>/checkpoints/step_NNNNNNN   save_pretrained + training_state.pt, the last two kept
+    <out>/checkpoints/step_NNNNNNN   save_pretrained + the training state, the last two kept:
+                                     training_state.safetensors (tensors: optimizer moments, RNG
+                                     states, the weight average) + training_state.json (the rest);
+                                     no pickle, so resuming never runs code from a file
     <out>/checkpoints/last           names the newest step (written atomically)
     <out>/final                      save_pretrained of the result
 """
@@ -10,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import random
 import shutil
@@ -19,9 +23,15 @@ from typing import Optional
 import numpy as np
 import torch
 
+from safetensors.torch import load_file
+from safetensors.torch import save as tensors_to_bytes
+
 from .policy import ActionDecoderPolicy
 
 CKPT_DIR, LAST, FINAL, LOCK = "checkpoints", "last", "final", ".lock"
+STATE_JSON, STATE_TENSORS = "training_state.json", "training_state.safetensors"
+LEGACY_STATE = "training_state.pt"
+STATE_FORMAT = "action-decoder training state 1"
 
 
 def _rng_state() -> dict:
@@ -32,6 +42,80 @@ def _set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
+
+
+def _encode(obj, tensors: dict, key: str):
+    """`obj` as JSON, its tensors moved into `tensors` under their path (`key`). Tuples, NumPy
+    arrays and dicts with non-string keys are tagged so that `_decode` rebuilds them exactly."""
+    if isinstance(obj, torch.Tensor):
+        tensors[key] = obj.detach().cpu().clone().contiguous()     # its own storage: safetensors refuses shared ones
+        return {"__tensor__": key}
+    if isinstance(obj, np.ndarray):
+        return {"__ndarray__": obj.tolist(), "dtype": str(obj.dtype)}
+    if isinstance(obj, tuple):
+        return {"__tuple__": [_encode(v, tensors, f"{key}.{i}") for i, v in enumerate(obj)]}
+    if isinstance(obj, list):
+        return [_encode(v, tensors, f"{key}.{i}") for i, v in enumerate(obj)]
+    if isinstance(obj, dict):
+        if all(isinstance(k, str) and not k.startswith("__") for k in obj):
+            return {k: _encode(v, tensors, f"{key}.{k}") for k, v in obj.items()}
+        return {"__items__": [[_encode(k, tensors, f"{key}.{i}k"), _encode(v, tensors, f"{key}.{i}")]
+                              for i, (k, v) in enumerate(obj.items())]}
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    if isinstance(obj, (np.integer, np.floating)):
+        return obj.item()
+    raise TypeError(f"training state {key}: cannot store a {type(obj).__name__} (tensors, numbers, strings, "
+                    f"lists, tuples, dicts and NumPy arrays only)")
+
+
+def _decode(obj, tensors: dict):
+    if isinstance(obj, list):
+        return [_decode(v, tensors) for v in obj]
+    if not isinstance(obj, dict):
+        return obj
+    if "__tensor__" in obj:
+        return tensors[obj["__tensor__"]]
+    if "__ndarray__" in obj:
+        return np.asarray(obj["__ndarray__"], dtype=obj["dtype"])
+    if "__tuple__" in obj:
+        return tuple(_decode(v, tensors) for v in obj["__tuple__"])
+    if "__items__" in obj:
+        return {_decode(k, tensors): _decode(v, tensors) for k, v in obj["__items__"]}
+    return {k: _decode(v, tensors) for k, v in obj.items()}
+
+
+def save_state(state: dict, directory: Path) -> None:
+    """Write a training state (nested dicts, lists and tuples of tensors, numbers, strings and NumPy
+    arrays) as `training_state.safetensors` + `training_state.json`: `load_state` gives it back
+    bit for bit, and neither file is a pickle."""
+    tensors: dict = {}
+    encoded = _encode(state, tensors, "state")
+    # Serialised in memory, written by Python: a full disk raises OSError (ENOSPC), not safetensors' own error.
+    (directory / STATE_TENSORS).write_bytes(tensors_to_bytes(tensors, metadata={"format": STATE_FORMAT}))
+    (directory / STATE_JSON).write_text(json.dumps({"format": STATE_FORMAT, "state": encoded}))
+
+
+def load_state(directory: Path) -> dict:
+    """The training state `save_state` wrote in `directory` (ValueError in one line otherwise)."""
+    if not (directory / STATE_JSON).is_file() and (directory / LEGACY_STATE).is_file():
+        raise ValueError(f"{LEGACY_STATE} is a pickled training state, which this version does not load "
+                         f"(expected {STATE_JSON}); continue that run with the version that wrote it")
+    try:
+        saved = json.loads((directory / STATE_JSON).read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{directory / STATE_JSON}: not a readable training state ({err})") from None
+    if not isinstance(saved, dict) or saved.get("format") != STATE_FORMAT:
+        raise ValueError(f"{directory / STATE_JSON}: expected format {STATE_FORMAT!r}, got "
+                         f"{saved.get('format') if isinstance(saved, dict) else type(saved).__name__!r}")
+    try:
+        tensors = load_file(str(directory / STATE_TENSORS))
+    except Exception as err:    # safetensors raises its own error type for a damaged file
+        raise ValueError(f"{directory / STATE_TENSORS}: not a readable safetensors file ({err})") from None
+    try:
+        return _decode(saved["state"], tensors)
+    except KeyError as err:
+        raise ValueError(f"{directory / STATE_TENSORS}: tensor {err} is missing") from None
 
 
 def _disk_error(err: BaseException, target: Path, out: Path) -> OSError:
@@ -59,7 +143,7 @@ def _writing(target: Path, out: Path, tmp: Optional[Path] = None):
 
 
 def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
-    """Write `checkpoints/step_N` (policy + `training_state.pt`) through a temporary directory
+    """Write `checkpoints/step_N` (policy + `save_state(state)`) through a temporary directory
     and a rename, then point `checkpoints/last` at it (also atomically): a crash or a full disk
     leaves the previous checkpoint intact (a full disk raises OSError saying so). Keeps the last two."""
     root = out / CKPT_DIR
@@ -69,7 +153,7 @@ def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
         root.mkdir(parents=True, exist_ok=True)
         shutil.rmtree(tmp, ignore_errors=True)
         policy.save_pretrained(tmp)
-        torch.save(state, tmp / "training_state.pt")
+        save_state(state, tmp)
         shutil.rmtree(final, ignore_errors=True)
         os.replace(tmp, final)
         pointer = root / (LAST + ".tmp")
@@ -125,12 +209,13 @@ def run_dir_lock(out: Path, option: str = "--output-dir"):
 
 
 def last_checkpoint(out: Path) -> Optional[Path]:
-    """The newest `checkpoints/step_*` that holds a `training_state.pt` (None: no checkpoint).
+    """The newest `checkpoints/step_*` that holds a training state (None: no checkpoint; a pickled
+    `training_state.pt` counts, so that a run never overwrites one, and `load_state` refuses it).
 
     Newest by step, not by the `last` pointer, so that a deleted or half-written target does
     not hide an intact older checkpoint. `resume_checkpoint` also checks that it loads."""
     steps = sorted((out / CKPT_DIR).glob("step_*"), reverse=True)
-    return next((p for p in steps if (p / "training_state.pt").is_file()), None)
+    return next((p for p in steps if (p / STATE_JSON).is_file() or (p / LEGACY_STATE).is_file()), None)
 
 
 def resume_checkpoint(out: Path, device: torch.device) -> Optional[tuple[Path, ActionDecoderPolicy, dict, str]]:
@@ -144,7 +229,7 @@ def resume_checkpoint(out: Path, device: torch.device) -> Optional[tuple[Path, A
     for path in sorted(root.glob("step_*"), reverse=True):
         try:
             policy = ActionDecoderPolicy.from_pretrained(path, map_location=device)
-            state = torch.load(path / "training_state.pt", map_location="cpu", weights_only=False)
+            state = load_state(path)
         except Exception as err:   # any failure to load means: not intact, try the next one
             skipped[path.name] = (str(err).strip().splitlines() or [type(err).__name__])[0][:120]
             continue

@@ -455,6 +455,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     resumed = _resume(cfg, out, device, main)
     ds, tasks, val = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
+    dconf.extra["data"] = {"episodes": ds.dataset.num_episodes, "frames": ds.dataset.num_frames}   # for the model card
     torch.manual_seed(cfg.seed)
     policy = ActionDecoderPolicy(dconf, ds.stats).to(device)
     # Behaviour cloning never touches the SDE noise scale; frozen, every trainable parameter is

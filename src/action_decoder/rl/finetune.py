@@ -22,8 +22,8 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, run_dir_lock, save_final,
-                       write_checkpoint)
+from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, load_state, run_dir_lock,
+                       save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import TwinQ, ValueNet
@@ -278,7 +278,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
 
     if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
         policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
-        st = torch.load(ckpt / "training_state.pt", map_location="cpu", weights_only=False)
+        st = load_state(ckpt)
         critic.load_state_dict(st["critic"])
         for k, opt in optimizers.items():
             opt.load_state_dict(st["optimizers"][k])
