@@ -60,7 +60,8 @@ class Bound:
 
 
 class ActionDecoderPolicy(nn.Module):
-    """A LeRobot-style policy over any of the three decoders (see API.md)."""
+    """A LeRobot-style policy over any of the three decoders (the API reference and the getting-started
+    guide in `docs/` describe it)."""
 
     def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None):
         super().__init__()
