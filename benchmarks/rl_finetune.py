@@ -154,7 +154,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="metaworld/reach,metaworld/reach-wall,metaworld/door-lock",
-                   help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/rl.md)")
+                   help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/benchmarks/rl_finetune.md)")
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
     p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
     p.add_argument("--demos", type=int, default=3)

@@ -31,11 +31,25 @@ def mkdocs_available():
         pytest.skip("mkdocs / mkdocstrings not installed (the [docs] extra)")
 
 
-def test_mkdocs_build_strict_passes(mkdocs_available, tmp_path):
-    res = _mkdocs_build(ROOT, tmp_path / "site")
+def test_mkdocs_build_strict_passes_and_renders_every_public_name(mkdocs_available, tmp_path):
+    import action_decoder.data
+    import action_decoder.flows
+    import action_decoder.rl
+
+    site = tmp_path / "site"
+    res = _mkdocs_build(ROOT, site)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    for page in ("index.html", "reference/flows/index.html", "guides/vlm_conditioning/index.html"):
-        assert (tmp_path / "site" / page).is_file(), page
+    for page in ("index.html", "guides/vlm_conditioning/index.html", "benchmarks/metaworld_bc/index.html"):
+        assert (site / page).is_file(), page
+    html = {p: (site / "reference" / p / "index.html").read_text() for p in ("flows", "data", "rl", "policy")}
+    anchors = [("flows", f"action_decoder.flows.{n}") for n in action_decoder.flows.__all__]
+    anchors += [("data", f"action_decoder.data.{n}") for n in action_decoder.data.__all__]
+    anchors += [("rl", "action_decoder.rl.FinetuneConfig"), ("rl", "action_decoder.rl.finetune.finetune")]
+    anchors += [("policy", f"action_decoder.{n}") for n in ("policy.ActionDecoderPolicy", "policy.PolicyOutput",
+                                                            "config.DecoderConfig")]
+    missing = [name for page, name in anchors if f'id="{name}"' not in html[page]]
+    assert not missing, f"rendered without a documented entry: {missing}"
+    assert set(action_decoder.rl.__all__) == {"FinetuneConfig", "finetune"}
 
 
 @pytest.mark.parametrize("breakage", ["link", "reference"])
