@@ -9,8 +9,8 @@ layouts disjoint from the demonstrations, for each decoder and sampling budget.
 
 Every (task, seed, decoder) run lives in its own directory under --runs and is skipped when
 already complete, so the grid can be stopped and continued. Finished evaluations are merged,
-one row each, into --results (docs/benchmarks/metaworld_bc.json), which a later session's
-run also skips: the grid can be finished over several sessions. The table in
+one row each, into --results (docs/benchmarks/metaworld_bc.json), which a later invocation
+also skips: the grid can be finished over several invocations. The table in
 docs/benchmarks/metaworld_bc.md is rebuilt from the rows of today's recipe (demos and their
 recording noise, training steps and batch, episodes, state layout and shift); text below its notes marker
 is kept. Beside the decoders stand two references: the plain-MLP policy the issue measured
@@ -57,9 +57,9 @@ def _run(cmd: list[str], log: Path) -> None:
 
 def run_one(task: str, seed: int, decoder: str, args) -> None:
     """Train one policy (if not yet trained), evaluate it at each of its sampling budgets, and merge
-    its rows into --results at once (a session cut off mid-grid keeps every finished run)."""
+    its rows into --results at once (an invocation cut off mid-grid keeps every finished run)."""
     if all(m in args.done.get((task, seed), set()) for m in METHODS if m[0] == decoder):
-        return                          # measured in an earlier session: kept in --results
+        return                          # measured by an earlier invocation: kept in --results
     tag = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
     if decoder not in ("mlp_baseline", "scripted_expert") and args.batch_size != LEGACY_BATCH:  # theirs: fixed
         tag += f"_{args.steps}x{args.batch_size}"
@@ -145,8 +145,8 @@ ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
-    """Rows kept in `results` from earlier sessions, replaced by fresh rows of the same run; written
-    back (a row per line) so that the grid can be finished over several sessions."""
+    """Rows kept in `results` from earlier invocations, replaced by fresh rows of the same run; written
+    back (a row per line) so that the grid can be finished over several invocations."""
     def key(r):
         return tuple(str(r.get(k)) for k in ROW_KEY)
 
@@ -239,7 +239,7 @@ def main(argv=None) -> None:
     p.add_argument("--runs", default="runs/metaworld_bc")
     p.add_argument("--table", default="docs/benchmarks/metaworld_bc.md")
     p.add_argument("--results", default=None,
-                   help="rows kept across sessions (default: --table with .json); the table is built from them")
+                   help="rows kept across invocations (default: --table with .json); the table is built from them")
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: merge the finished runs into --results and rebuild the table")
     p.add_argument("--multitask", action="store_true",

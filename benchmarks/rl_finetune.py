@@ -8,8 +8,8 @@ evaluation layouts before and after.
 Each (task, decoder) run lives in its own directory under --runs (suffixed `_sac` for SAC);
 finished steps are skipped and an interrupted fine-tuning resumes, so the grid can be stopped
 and continued. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json
-(which keeps the rows of earlier sessions, whose run directories are gone), and the table and
-a plot of the learning curves are written from it.
+(which keeps rows whose run directories are gone), and the table and a plot of the learning
+curves are written from it; text below the table's notes marker is kept.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from operator import itemgetter
 from pathlib import Path
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
+NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 
 
 def _run(cmd: list[str], log: Path) -> None:
@@ -101,7 +102,7 @@ def collect(runs: Path) -> list[dict]:
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
     """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
-    (task, decoder, algo); written back so that tables and plots can be rebuilt across sessions."""
+    (task, decoder, algo); written back so that tables and plots can be rebuilt from every run kept."""
     key = itemgetter("task", "decoder", "algo")
     kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({key(r): r for r in rows})
@@ -124,10 +125,10 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
             + "\n".join(lines) + "\n\n"
             f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
-            "learning curves of the rows that kept one (rows recorded before the curves were stored have none). "
-            "Discussion in `docs/rl.md` § Measurements.\n")
+            "learning curves of the rows that kept one (rows recorded before the curves were stored have none).\n")
     table.parent.mkdir(parents=True, exist_ok=True)
-    table.write_text(text)
+    notes = table.read_text().partition(NOTES)[2] if table.is_file() else ""
+    table.write_text(text + f"\n{NOTES}" + (notes or "\n"))   # the hand-written part below the table stays
     curves = [r for r in rows if r["curve"]]
     if curves:
         import matplotlib
@@ -153,7 +154,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="metaworld/reach,metaworld/reach-wall,metaworld/door-lock",
-                   help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/rl.md)")
+                   help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/benchmarks/rl_finetune.md)")
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
     p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
     p.add_argument("--demos", type=int, default=3)

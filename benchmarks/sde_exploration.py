@@ -5,7 +5,7 @@ denoising steps' noise varies (the others' noise is held fixed):
     python -m benchmarks.sde_exploration --checkpoint runs/bc/final
 
 PPO on chains credits chosen denoising steps; steps whose noise does not move the executed
-actions carry no signal (docs/rl.md, "Trained steps").
+actions carry no signal (docs/guides/rl_finetuning.md, "Trained steps").
 """
 
 from __future__ import annotations

@@ -114,7 +114,7 @@ def test_mlp_reference_writes_a_column_the_bc_table_reads(monkeypatch, tmp_path)
     assert table["reach-v3"][("mlp_baseline", "ode", 1)] == {0: res["success_k1"]}
 
 
-def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monkeypatch, tmp_path):
+def test_bc_results_persist_across_invocations_and_the_table_keeps_one_recipe(monkeypatch, tmp_path):
     from benchmarks import metaworld_bc
 
     def row(task, seed, success, train_steps=1500, demo_noise=0.0, n_action_steps=8, batch_size=128):
@@ -124,10 +124,10 @@ def test_bc_results_persist_across_sessions_and_the_table_keeps_one_recipe(monke
                 "success": success}
 
     results = tmp_path / "bc.json"
-    unbatched = {k: v for k, v in row("push-v3", 1, 0.7).items() if k != "batch_size"}    # written before session 14
+    unbatched = {k: v for k, v in row("push-v3", 1, 0.7).items() if k != "batch_size"}    # written before batch_size was part of a row
     metaworld_bc.merge(results, [row("push-v3", 0, 0.5), unbatched, row("push-v3", 0, 0.1, 5000),
                                  row("push-v3", 0, 0.2, demo_noise=0.3), row("push-v3", 0, 0.6, n_action_steps=4)])
-    merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3),   # a later session
+    merged = metaworld_bc.merge(results, [row("push-v3", 0, 0.9), row("hammer-v3", 0, 0.3),   # a later invocation
                                           row("push-v3", 1, 0.4, batch_size=256)])
     assert len(merged) == 7 and len(results.read_text().splitlines()) == 9     # one row per line
     want = {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "batch_size": 128, "episodes": 50,
@@ -220,6 +220,10 @@ def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tm
     text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
     assert "| 30 (K=1) | 40 (K=10) | 70 | 60 | +30 |" in text      # 70 − max(30, 40)
     assert rows[0]["curve"] == [[0.92, 0.5, 0.5]]                   # 55 CPU-s
+    md = tmp_path / "t.md"
+    md.write_text(md.read_text() + "What the table says.\n")
+    rl_finetune.write_report(rows[:0], md, tmp_path / "t.png", args)   # rebuilt: the table changes, the notes stay
+    assert "reach-v3" not in md.read_text() and md.read_text().endswith(rl_finetune.NOTES + "\nWhat the table says.\n")
 
 
 def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path):

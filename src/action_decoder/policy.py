@@ -64,8 +64,9 @@ class Bound:
 
 class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_card.LIBRARY_NAME,
                           pipeline_tag="robotics", tags=["robotics", model_card.LIBRARY_NAME]):
-    """A LeRobot-style policy over any of the three decoders (see API.md). Checkpoints use the Hub's
-    `PyTorchModelHubMixin` layout (`save_pretrained`, `from_pretrained`, `push_to_hub`)."""
+    """A LeRobot-style policy over any of the three decoders (the API reference and the getting-started
+    guide in `docs/` describe it). Checkpoints use the Hub's `PyTorchModelHubMixin` layout
+    (`save_pretrained`, `from_pretrained`, `push_to_hub`)."""
 
     def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None):
         super().__init__()

@@ -14,7 +14,8 @@ import numpy as np
 
 from .stats import compute_stats
 
-STATE, ACTION = "observation.state", "action"
+STATE = "observation.state"   # LeRobot feature names
+ACTION = "action"
 CONTINUATION = "action.continuation"
 """Optional per-frame ``[K, D]``: the demonstrator's own next K actions from this frame's state
 (recorded with noise, the frames that follow do not show them; see ``demos.py``)."""

@@ -1,7 +1,7 @@
 """RL fine-tuning of flow decoders through their SDE sampler (PPO on chains, SAC-style).
 
 A behaviour-cloned flow-matching or MeanFlow policy explores through σ(t) while its learned
-marginals stay put (design doc §4); these modules turn the per-step Gaussian densities of
+marginals stay put; these modules turn the per-step Gaussian densities of
 the denoising chain into policy-gradient (PPO) or reparameterised (SAC) updates.
 """
 
