@@ -202,3 +202,9 @@ def test_wandb_without_the_package_is_one_line_before_any_work(tmp_path):
     assert res.stderr.strip().splitlines() == 3 * ['action-decoder: error: --wandb: needs the wandb package '
                                                    '(pip install "action-decoder[wandb]"), which is not installed']
     assert not (tmp_path / "t").exists() and not (tmp_path / "f").exists()
+
+
+def test_a_missing_tensorboard_is_one_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "tensorboard", None)
+    with pytest.raises(ValueError, match=r'^tensorboard: .*pip install "tensorboard>=2.18"'):
+        RunLogger(tmp_path, "train_log.jsonl")

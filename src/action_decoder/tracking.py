@@ -86,6 +86,11 @@ class RunLogger:
     def __init__(self, run_dir: Path, jsonl: Optional[str] = None, start_step: Optional[int] = 0,
                  wandb_project: Optional[str] = None, job_type: str = "train", config: Optional[dict] = None,
                  name: Optional[str] = None):
+        try:
+            import tensorboard  # noqa: F401  (torch.utils.tensorboard writes through it)
+        except ImportError:
+            raise ValueError('tensorboard: run logs need the tensorboard package, a dependency of action-decoder '
+                             '(pip install "tensorboard>=2.18")') from None
         from torch.utils.tensorboard import SummaryWriter
 
         self.run_dir = Path(run_dir)
