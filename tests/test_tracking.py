@@ -70,7 +70,8 @@ def test_train_events_and_jsonl_are_written_as_it_goes_and_a_resume_keeps_each_s
     steps = list(range(1, checkpoint + 4))
     assert [r["step"] for r in final] == steps
     assert final[:checkpoint] == rows[:checkpoint]
-    assert final == json.loads((out / "train_log.json").read_text())["history"]
+    history = json.loads((out / "train_log.json").read_text())["history"]    # what was trained: no timings
+    assert [{k: v for k, v in r.items() if k != "samples_per_s"} for r in final] == history
     events = scalars(out)
     for key in ("loss", "lr", "grad_norm", "samples_per_s", "ema_decay"):
         assert [s for s, _ in events[f"train/{key}"]] == steps, key
@@ -173,15 +174,19 @@ class _FakeWandb(types.ModuleType):
 def test_wandb_gets_the_same_scalars_and_a_resume_continues_its_run(tmp_path, monkeypatch):
     fake = _FakeWandb()
     monkeypatch.setitem(sys.modules, "wandb", fake)
-    for start in (0, 2):
+    for start in (0, 2, 0):                                   # a run, its resume, a new run in the same directory
         with RunLogger(tmp_path, "train_log.jsonl", start, wandb_project="proj", config={"lr": 0.1}) as log:
             log.log(start + 1, {"loss": 0.5, "lr": 0.1}, "train")
-    first, second = fake.inits
+    first, second, third = fake.inits
     assert first["project"] == second["project"] == "proj" and first["config"] == {"lr": 0.1}
-    assert first["id"] == second["id"] and second["resume"] == "allow" and first["dir"] == str(tmp_path)
+    assert first["id"] == second["id"] != third["id"] and second["resume"] == "allow" and first["dir"] == str(tmp_path)
     assert fake.logged == [{"train/step": 1, "train/loss": 0.5, "train/lr": 0.1},
-                           {"train/step": 3, "train/loss": 0.5, "train/lr": 0.1}]
-    assert fake.finished == 2
+                           {"train/step": 3, "train/loss": 0.5, "train/lr": 0.1},
+                           {"train/step": 1, "train/loss": 0.5, "train/lr": 0.1}]
+    assert fake.finished == 3
+    with RunLogger(tmp_path, start_step=None, wandb_project="proj", job_type="eval") as log:
+        log.log(1, {"success_rate": 1.0}, "eval/x", record=False)
+    assert "id" not in fake.inits[-1] and fake.inits[-1]["job_type"] == "eval"
 
 
 def test_wandb_without_the_package_is_one_line_before_any_work(tmp_path):
@@ -197,3 +202,9 @@ def test_wandb_without_the_package_is_one_line_before_any_work(tmp_path):
     assert res.stderr.strip().splitlines() == 3 * ['action-decoder: error: --wandb: needs the wandb package '
                                                    '(pip install "action-decoder[wandb]"), which is not installed']
     assert not (tmp_path / "t").exists() and not (tmp_path / "f").exists()
+
+
+def test_a_missing_tensorboard_is_one_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "tensorboard", None)
+    with pytest.raises(ValueError, match=r'^tensorboard: .*pip install "tensorboard>=2.18"'):
+        RunLogger(tmp_path, "train_log.jsonl")

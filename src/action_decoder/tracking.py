@@ -56,15 +56,16 @@ def _keep_through(path: Path, step: int) -> None:
     os.replace(tmp, path)
 
 
-def _start_wandb(run_dir: Path, project: str, job_type: str, config: dict, name: str, resumable: bool):
-    """A W&B run logging into `run_dir/wandb`. Resumable runs keep their id in `run_dir/wandb_run_id`,
-    so `--resume` continues the same W&B run."""
+def _start_wandb(run_dir: Path, project: str, job_type: str, config: dict, name: str, resume: Optional[bool]):
+    """A W&B run logging into `run_dir/wandb`. `resume` False: a new run, its id kept in
+    `run_dir/wandb_run_id`; True: the run that file names continues (a new one if there is none);
+    None: a run of its own (an evaluation)."""
     import wandb
 
     ids = {}
-    if resumable:
+    if resume is not None:
         id_file = run_dir / WANDB_ID_FILE
-        run_id = id_file.read_text().strip() if id_file.is_file() else secrets.token_hex(4)
+        run_id = id_file.read_text().strip() if resume and id_file.is_file() else secrets.token_hex(4)
         id_file.write_text(run_id)
         ids = {"id": run_id, "resume": "allow"}
     return wandb.init(project=project, dir=str(run_dir), name=name, group=run_dir.name, job_type=job_type,
@@ -79,12 +80,17 @@ class RunLogger:
     `start_step`: the step a run starts or resumes from. The log's rows past it are dropped and
     TensorBoard is told to drop its events past it (a `SessionLog.START` at `start_step + 1`), so a
     resumed run shows each step once. None: add to what is there (an evaluation of a finished run).
-    `wandb_project`: also log to W&B (None: off); `job_type` "train" and "finetune" runs resume by id.
+    `wandb_project`: also log to W&B (None: off); a run resumed past step 0 continues its W&B run.
     """
 
     def __init__(self, run_dir: Path, jsonl: Optional[str] = None, start_step: Optional[int] = 0,
                  wandb_project: Optional[str] = None, job_type: str = "train", config: Optional[dict] = None,
                  name: Optional[str] = None):
+        try:
+            import tensorboard  # noqa: F401  (torch.utils.tensorboard writes through it)
+        except ImportError:
+            raise ValueError('tensorboard: run logs need the tensorboard package, a dependency of action-decoder '
+                             '(pip install "tensorboard>=2.18")') from None
         from torch.utils.tensorboard import SummaryWriter
 
         self.run_dir = Path(run_dir)
@@ -98,7 +104,8 @@ class RunLogger:
         self._wandb_prefixes: set[str] = set()
         if wandb_project is not None:
             self.wandb = _start_wandb(self.run_dir, wandb_project, job_type, config or {},
-                                      name or self.run_dir.absolute().name, resumable=job_type != "eval")
+                                      name or self.run_dir.absolute().name,
+                                      resume=None if start_step is None else start_step > 0)
 
     def log(self, step: int, values: dict, prefix: str, record: bool = True) -> None:
         """Each number of `values` as the scalar `<prefix>/<key>` at `step` (TensorBoard's x axis, and

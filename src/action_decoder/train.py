@@ -518,17 +518,17 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
             mean_loss = float(torch.stack(running).mean())
             now = time.perf_counter()
             row = {"step": done, "loss": mean_loss, "lr": scheduler.get_last_lr()[0],
-                   "grad_norm": float(torch.stack(grad_norms).mean()),
-                   "samples_per_s": cfg.batch_size * len(running) / (now - t_logged)}
+                   "grad_norm": float(torch.stack(grad_norms).mean())}
             if ema is not None:
                 row["ema_decay"] = ema_decay_at(cfg.ema_decay, int(ema.n_averaged) - 1)
+            samples_per_s = cfg.batch_size * len(running) / (now - t_logged)   # not in the history: runs repeat it exactly
             running, grad_norms, t_logged = [], [], now
             if not math.isfinite(mean_loss):
                 raise FloatingPointError(f"training loss became {mean_loss} at step {done}; lower --lr "
                                          f"(now {cfg.lr}) or check the dataset")
             history.append(row)
             if logger is not None:
-                logger.log(done, row, "train")
+                logger.log(done, {**row, "samples_per_s": samples_per_s}, "train")
             if bar is not None:
                 bar.set_postfix(loss=f"{mean_loss:.4f}", steps_per_s=f"{(done - start) / (time.perf_counter() - t0):.1f}")
         if bar is not None:
