@@ -80,7 +80,7 @@ def test_trained_checkpoint_has_a_card_with_the_printed_success(tmp_path, env):
 
 
 def fake_evaluate(successes):
-    def evaluate(fn, task, episodes, seed, n_action_steps, num_envs, task_index=0, progress=None, record=False):
+    def evaluate(fn, task, episodes, seed, n_action_steps, num_envs, task_index=0, progress=None, record=False, **options):
         wins = successes[:episodes]
         return {"task": "reach-v3", "success_rate": float(np.mean(wins)), "successes": wins,
                 "lengths": [1] * episodes, "returns": [0.0] * episodes, "seeds": list(range(episodes)),
