@@ -40,6 +40,12 @@ class EvalConfig:
     """Also plot the hand trajectories next to the JSON summary (same name, .png)."""
     num_envs: int = 10
     device: str = "cpu"
+    delay: int = 0
+    """Simulated inference time in control steps (0..n_action_steps): the env keeps executing the old
+    chunk meanwhile, and the new one, planned from the observation d steps earlier, takes over after."""
+    rtc: bool = False
+    """Real-time chunking: condition each new chunk on the old chunk's remaining actions (its first
+    `delay` ones frozen; flow_matching and mean_flow). Off: the chunks switch naively."""
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
@@ -62,7 +68,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
 
     @torch.no_grad()
     def policy_fn(states: np.ndarray, task_index: np.ndarray, episode_seeds: Optional[np.ndarray] = None,
-                  plan_indices: Optional[np.ndarray] = None) -> np.ndarray:
+                  plan_indices: Optional[np.ndarray] = None, prev_chunks: Optional[np.ndarray] = None,
+                  delay: int = 0) -> np.ndarray:
         batch = {"state": torch.from_numpy(np.asarray(states, dtype=np.float32)).to(device)}   # [B, S]
         ctx = task_context(torch.as_tensor(task_index), num_tasks)
         batch.update({k: v.to(device) for k, v in ctx.items()})
@@ -73,7 +80,9 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
                                  f"{None if episode_seeds is None else len(episode_seeds)} and "
                                  f"{None if plan_indices is None else len(plan_indices)}")
             gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
-        out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens)
+        prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
+        out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
+                            prev_chunk=prev, delay=delay)                                # prev [B, L, D]
         return out.actions.float().cpu().numpy()                                            # [B, H, D]
 
     return policy_fn
@@ -89,6 +98,12 @@ def run_eval(cfg: EvalConfig) -> dict:
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "
                          f"got {cfg.n_action_steps}")
+    if not 0 <= cfg.delay <= n_exec or n_exec + cfg.delay > policy.config.action_chunk_size:
+        raise ValueError(f"--delay: expected 0..{min(n_exec, policy.config.action_chunk_size - n_exec)} (at most "
+                         f"--n-action-steps={n_exec}, and n_action_steps + delay <= the chunk length "
+                         f"{policy.config.action_chunk_size}), got {cfg.delay}")
+    if cfg.rtc and policy.config.decoder_type == "DDPM":
+        raise ValueError("--rtc: real-time chunking needs a flow_matching or mean_flow checkpoint, got DDPM")
     trained = list(policy.config.extra.get("tasks") or [])
     tasks = resolve_tasks(cfg.task) if cfg.task else trained
     if not tasks:
@@ -112,22 +127,33 @@ def run_eval(cfg: EvalConfig) -> dict:
                   f"({done}/{total} done, running success {np.mean(wins):.2f})", flush=True)
 
         res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
-                       num_envs=cfg.num_envs, task_index=index, progress=progress, record=cfg.plot)
+                       num_envs=cfg.num_envs, task_index=index, progress=progress, record=cfg.plot,
+                       delay=cfg.delay, rtc=cfg.rtc)
         results.append(res)
-        print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
+        jerk = "" if res.get("boundary_jerk") is None else f" boundary_jerk={res['boundary_jerk']:.4g}"
+        print(f"[{task}] success_rate={res['success_rate']:.3f}{jerk}", flush=True)
     summary = {
         "checkpoint": str(cfg.checkpoint), "decoder_type": policy.config.decoder_type,
         "sampler": policy.resolve_sampler(cfg.sampler), "steps": policy.resolve_steps(cfg.sampler, steps),
         "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
+        "delay": cfg.delay, "rtc": cfg.rtc,
+        "boundary_jerk": _mean_jerk(results),
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
-    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}_seed{cfg.seed}.json"
+    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
+    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}{timing}_seed{cfg.seed}.json"
     out = Path(cfg.output) if cfg.output else Path(cfg.checkpoint) / name
     write_summary(summary, results if cfg.plot else None, out)
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
+
+
+def _mean_jerk(results: list) -> Optional[float]:
+    """Boundary jerk over all tasks' boundary stencils (None without any chunk switch)."""
+    n = sum(r.get("boundaries", 0) for r in results)
+    return sum(r["boundary_jerk"] * r["boundaries"] for r in results if r.get("boundaries")) / n if n else None
 
 
 def write_summary(summary: dict, plot_results: Optional[list], out: Path) -> Optional[Path]:
