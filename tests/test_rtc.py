@@ -209,6 +209,7 @@ def test_delayed_execution_runs_the_old_chunk_while_the_new_one_is_computed(monk
     np.testing.assert_allclose(calls[1][1][0, :, 0], (0 + np.arange(4, 8)) / 100)   # old chunk's steps s..H−1
     assert calls[1][2] == 2 and res["delay"] == 2 and res["rtc"] is True
     assert res["boundaries"] == 4 and res["boundary_jerk"] > 0
+    assert res["episode_boundary_jerk"] == [pytest.approx(res["boundary_jerk"])]      # one episode
 
 
 def test_jerk_stats_count_the_stencils_around_each_switch():

@@ -114,7 +114,8 @@ def evaluate(
     episode ``successes``, ``lengths``, ``returns``, ``seeds``, plus ``env_steps``,
     ``wall_time_s``, ``delay``, ``rtc``, ``boundary_jerk`` (mean squared jerk of the executed
     actions over the stencils that span a chunk switch, ``jerk_stats``; None without switches),
-    ``jerk`` (over all stencils) and ``boundaries`` (the number of boundary stencils).
+    ``jerk`` (over all stencils), ``boundaries`` (the number of boundary stencils) and
+    ``episode_boundary_jerk`` (each episode's own mean, None without a switch).
     """
     name = canonical_task(task)
     for arg, value, low in (("episodes", episodes, 1), ("n_action_steps", n_action_steps, 1), ("num_envs", num_envs, 1)):
@@ -193,7 +194,8 @@ def evaluate(
                     progress(finished, episodes, ep, successes[ep])
                 begin(s)
     _idle_envs.setdefault(name, []).extend(envs)
-    jerks = np.array([jerk_stats(a, k) for a, k in zip(executed, switches)]).reshape(-1, 4).sum(0)
+    per_episode = np.array([jerk_stats(a, k) for a, k in zip(executed, switches)]).reshape(-1, 4)   # [episodes, 4]
+    jerks = per_episode.sum(0)
     extra = {"trajectories": [{"hand": np.stack(h).tolist(), "goal": g.tolist()} for h, g in zip(hands, goals)]} \
         if record else {}
     return {
@@ -211,4 +213,5 @@ def evaluate(
         "boundary_jerk": float(jerks[0] / jerks[1]) if jerks[1] else None,
         "jerk": float(jerks[2] / jerks[3]) if jerks[3] else None,
         "boundaries": int(jerks[1]),
+        "episode_boundary_jerk": [float(b / n) if n else None for b, n in per_episode[:, :2]],
     }
