@@ -239,3 +239,24 @@ def test_eval_delay_rtc_runs_end_to_end_and_records_it(tmp_path, monkeypatch, ca
     assert cli.main(args + ["--delay", "5"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith("action-decoder: error: --delay: expected 0..4") and "got 5" in err
+
+
+def test_benchmark_table_pools_seeds_by_episode_and_jerk_by_stencil(tmp_path):
+    from argparse import Namespace
+
+    from benchmarks.rtc import write_page
+
+    def row(seed, rtc, successes, jerk, boundaries, per_episode, ms):
+        return {"task": "push-v3", "decoder": "mean_flow", "steps": 1, "delay": 2, "rtc": rtc, "episodes": 4,
+                "seed": seed, "successes": successes, "success_rate": successes / 4, "boundary_jerk": jerk,
+                "boundaries": boundaries, "episode_boundary_jerk": per_episode, "latency_ms": ms, "command": "c"}
+
+    rows = [row(0, False, 4, 0.2, 10, [0.2] * 4, 10.0), row(1, False, 2, 0.1, 30, [0.1] * 4, 10.0),
+            row(0, True, 3, 0.1, 10, [0.1] * 4, 20.0), row(1, True, 3, 0.1, 10, [0.0, 0.2, 0.1, 0.1], 30.0)]
+    page = tmp_path / "rtc.md"
+    write_page(rows, page, Namespace(seed=0, latency_reps=5), "c")
+    line = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[2:4] == ["75.0", "75.0"]                                  # 6/8 and 6/8 episodes
+    assert cells[4].startswith("0.1250 ± ") and cells[5].startswith("0.1000 ± ")   # (0.2·10 + 0.1·30)/40
+    assert cells[6] == "0.80" and cells[9] == "2.50×"                      # 0.1/0.125; 25 ms / 10 ms
