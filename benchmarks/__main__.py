@@ -1,4 +1,5 @@
-"""python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]"""
+"""python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]
+python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)"""
 
 from __future__ import annotations
 
@@ -12,6 +13,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["rtc"]:
+        from .rtc import main as rtc_main
+
+        rtc_main(argv[1:])
+        return 0
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks and few rounds (smoke test)")

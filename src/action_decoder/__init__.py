@@ -9,11 +9,13 @@ from .policy import ActionDecoderPolicy, PolicyOutput
 from .flows import (ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, SDEResult,
                     chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                     meanflow_target, sample_ddpm, sample_meanflow, sample_ode, sample_sde,
-                    time_grid, velocity_from_meanflow, velocity_from_sample)
+                    time_grid, velocity_from_meanflow, velocity_from_sample, rtc_weights,
+                    sample_ode_rtc, sample_meanflow_rtc, sample_sde_rtc)
 
 __version__ = "0.1.0"
 
 __all__ = ["ActionDecoderPolicy", "PolicyOutput", "ChurnSigma", "DecoderConfig", "ExploringSigma", "FixedSigma", "LearnableSigma",
            "SDEResult", "chain_log_prob", "ddpm_loss", "flow_matching_loss", "make_sigma",
            "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
-           "sample_sde", "time_grid", "velocity_from_meanflow", "velocity_from_sample"]
+           "sample_sde", "time_grid", "velocity_from_meanflow", "velocity_from_sample",
+           "rtc_weights", "sample_ode_rtc", "sample_meanflow_rtc", "sample_sde_rtc"]

@@ -22,6 +22,7 @@ BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
 MEANFLOW_VELOCITIES = ("boundary", "identity")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
+RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
 # carries every field: a checkpoint is read back as it was trained, never completed with
 # defaults (files without a version, written before it existed, are version 1).
@@ -76,6 +77,13 @@ class DecoderConfig:
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
+    # --- real-time chunking (`flows/rtc.py`; used when a previous chunk is passed to sampling) ---
+    # β: the clip of the guidance weight min(β, (1 − t)/(t·r_t²)) (the paper's 5; 0: no guidance,
+    # only the frozen prefix). The samplers also clip it at 1/Δt (a 1-step MeanFlow uses 1).
+    rtc_guidance_weight: float = 5.0
+    # How the guidance weights decay over the overlap after the frozen prefix: "exp" (the paper),
+    # "linear", "ones" (the whole overlap as strongly as the prefix), "zeros" (only the prefix).
+    rtc_schedule: str = "exp"
     # --- the Action Expert network ---
     state_dim: int = 39
     action_dim: int = 4
@@ -113,6 +121,8 @@ class DecoderConfig:
         _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
         _choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
+        _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
+        _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         if self.flow_sde_t_min is not None:
             _finite("flow_sde_t_min", self.flow_sde_t_min)
             if not 0.0 < self.flow_sde_t_min <= 1.0:

@@ -66,6 +66,12 @@ class EvalConfig:
     """Also log the success rates to Weights & Biases (pip install "action-decoder[wandb]"). They always go
     to TensorBoard: in the checkpoint's run directory at its step, else next to the JSON summary."""
     wandb_project: str = "action-decoder"
+    delay: int = 0
+    """Simulated inference time in control steps (0..n_action_steps): the env keeps executing the old
+    chunk meanwhile, and the new one, planned from the observation d steps earlier, takes over after."""
+    rtc: bool = False
+    """Real-time chunking: condition each new chunk on the old chunk's remaining actions (its first
+    `delay` ones frozen; flow_matching and mean_flow). Off: the chunks switch naively."""
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
@@ -88,7 +94,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
 
     @torch.no_grad()
     def policy_fn(states: np.ndarray, task_index: np.ndarray, episode_seeds: Optional[np.ndarray] = None,
-                  plan_indices: Optional[np.ndarray] = None) -> np.ndarray:
+                  plan_indices: Optional[np.ndarray] = None, prev_chunks: Optional[np.ndarray] = None,
+                  delay: int = 0) -> np.ndarray:
         batch = {"state": torch.from_numpy(np.asarray(states, dtype=np.float32)).to(device)}   # [B, S]
         ctx = task_context(torch.as_tensor(task_index), num_tasks)
         batch.update({k: v.to(device) for k, v in ctx.items()})
@@ -99,7 +106,9 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
                                  f"{None if episode_seeds is None else len(episode_seeds)} and "
                                  f"{None if plan_indices is None else len(plan_indices)}")
             gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
-        out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens)
+        prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
+        out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
+                            prev_chunk=prev, delay=delay)                                # prev [B, L, D]
         return out.actions.float().cpu().numpy()                                            # [B, H, D]
 
     return policy_fn
@@ -121,6 +130,12 @@ def run_eval(cfg: EvalConfig) -> dict:
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "
                          f"got {cfg.n_action_steps}")
+    if not 0 <= cfg.delay <= n_exec or n_exec + cfg.delay > policy.config.action_chunk_size:
+        raise ValueError(f"--delay: expected 0..{min(n_exec, policy.config.action_chunk_size - n_exec)} (at most "
+                         f"--n-action-steps={n_exec}, and n_action_steps + delay <= the chunk length "
+                         f"{policy.config.action_chunk_size}), got {cfg.delay}")
+    if cfg.rtc and policy.config.decoder_type == "DDPM":
+        raise ValueError("--rtc: real-time chunking needs a flow_matching or mean_flow checkpoint, got DDPM")
     trained = list(policy.config.extra.get("tasks") or [])
     tasks = resolve_tasks(cfg.task) if cfg.task else trained
     if not tasks:
@@ -148,7 +163,8 @@ def run_eval(cfg: EvalConfig) -> dict:
         try:
             res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
                            max_steps=cfg.max_steps, num_envs=cfg.num_envs, task_index=index, progress=progress,
-                           record=cfg.plot, on_step=camera)
+                           record=cfg.plot, on_step=camera,
+                           delay=cfg.delay, rtc=cfg.rtc)
         finally:
             if camera is not None:
                 camera.close()
@@ -156,17 +172,21 @@ def run_eval(cfg: EvalConfig) -> dict:
             encoded = camera.write(res["successes"], cfg.video_layout, cfg.video_fps, Path(video_dir.name), f"_{task}")
             videos.update((path.name, path) for path in encoded)
         results.append(res)
-        print(f"[{task}] success_rate={res['success_rate']:.3f}", flush=True)
+        jerk = "" if res.get("boundary_jerk") is None else f" boundary_jerk={res['boundary_jerk']:.4g}"
+        print(f"[{task}] success_rate={res['success_rate']:.3f}{jerk}", flush=True)
     summary = {
         "checkpoint": str(cfg.checkpoint), "decoder_type": policy.config.decoder_type,
         "sampler": policy.resolve_sampler(cfg.sampler), "steps": policy.resolve_steps(cfg.sampler, steps),
         "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec, "max_steps": cfg.max_steps,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
+        "delay": cfg.delay, "rtc": cfg.rtc,
+        "boundary_jerk": _mean_jerk(results),
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
     cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
-    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}_seed{cfg.seed}{cap}.json"
+    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
+    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}{timing}_seed{cfg.seed}{cap}.json"
     out = Path(cfg.output) if cfg.output else Path(cfg.checkpoint) / name
     with video_dir:
         written = write_summary(summary, results if cfg.plot else None, out, videos)
@@ -174,6 +194,12 @@ def run_eval(cfg: EvalConfig) -> dict:
     update_card(Path(cfg.checkpoint), policy, summary, [r["task"] for r in results])
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
+
+
+def _mean_jerk(results: list) -> Optional[float]:
+    """Boundary jerk over all tasks' boundary stencils (None without any chunk switch)."""
+    n = sum(r.get("boundaries", 0) for r in results)
+    return sum(r["boundary_jerk"] * r["boundaries"] for r in results if r.get("boundaries")) / n if n else None
 
 
 def update_card(checkpoint: Path, policy: ActionDecoderPolicy, summary: dict, tasks: list) -> None:

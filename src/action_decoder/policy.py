@@ -24,7 +24,8 @@ from . import model_card
 from .config import MEANFLOW_VELOCITIES, SDE_MIN_STEPS, DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
-                    sample_ddpm, sample_meanflow, sample_ode, sample_sde, velocity_from_meanflow,
+                    sample_ddpm, sample_meanflow, sample_meanflow_rtc, sample_ode, sample_ode_rtc, sample_sde,
+                    sample_sde_rtc, velocity_from_meanflow,
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
 from .normalize import make_normalizers
@@ -251,19 +252,48 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     def predict_action_chunk(self, batch: Mapping[str, Any], sampler: Optional[str] = None,
                              steps: Optional[int] = None, return_logprob: Optional[bool] = None,
                              generator: Generators = None, noise: Optional[Tensor] = None,
-                             meanflow_velocity: Optional[str] = None):
+                             meanflow_velocity: Optional[str] = None, prev_chunk: Optional[Tensor] = None,
+                             delay: int = 0):
         """Sample a chunk [B, H, D] in environment units.
 
         Returns the tensor, or a `PolicyOutput` when log-probs are returned (asked here, or
         by `flow_sde_return_logprob` for the SDE sampler). For gradients through sampling
-        (SAC), call `sample(...)` instead.
+        (SAC), call `sample(...)` instead. `prev_chunk` and `delay`: real-time chunking, see `sample`.
         """
-        out = self.sample(batch, sampler, steps, return_logprob, generator, noise, meanflow_velocity)
+        out = self.sample(batch, sampler, steps, return_logprob, generator, noise, meanflow_velocity,
+                          prev_chunk=prev_chunk, delay=delay)
         return out if out.log_prob is not None else out.actions
+
+    def _check_prev_chunk(self, batch: Mapping[str, Any], prev_chunk: Optional[Tensor], delay: Any) -> int:
+        """Validate the RTC arguments; returns the delay as an int."""
+        cfg = self.config
+        if isinstance(delay, bool) or not isinstance(delay, numbers.Integral) or delay < 0:
+            raise ValueError(f"delay: expected a non-negative integer number of control steps, got {delay!r}")
+        if prev_chunk is None:
+            if delay:
+                raise ValueError(f"delay: {delay} needs prev_chunk (the previous chunk's actions from the new "
+                                 f"chunk's first step on, [B, L, {cfg.action_dim}]), got prev_chunk=None")
+            return 0
+        if cfg.decoder_type == "DDPM":
+            raise ValueError("prev_chunk: real-time chunking needs a flow_matching or mean_flow decoder, got DDPM "
+                             "(DPM-Solver++'s multistep updates leave no per-step velocity to guide)")
+        b, h = batch["state"].shape[0], cfg.action_chunk_size
+        if not isinstance(prev_chunk, Tensor) or not prev_chunk.is_floating_point() or prev_chunk.dim() != 3 \
+                or prev_chunk.shape[0] != b or prev_chunk.shape[2] != cfg.action_dim or prev_chunk.shape[1] > h:
+            got = f"{list(prev_chunk.shape)} {prev_chunk.dtype}" if isinstance(prev_chunk, Tensor) \
+                else type(prev_chunk).__name__
+            raise ValueError(f"prev_chunk: expected a floating-point tensor [{b}, L <= {h}, {cfg.action_dim}] "
+                             f"(the previous chunk's actions from the new chunk's first step on), got {got}")
+        if not delay <= prev_chunk.shape[1]:
+            raise ValueError(f"delay: expected at most prev_chunk's length {prev_chunk.shape[1]} (the frozen actions "
+                             f"come from it), got {delay}")
+        _finite(prev_chunk, "prev_chunk")
+        return int(delay)
 
     def sample(self, batch: Mapping[str, Any], sampler: Optional[str] = None, steps: Optional[int] = None,
                return_logprob: Optional[bool] = None, generator: Generators = None,
-               noise: Optional[Tensor] = None, meanflow_velocity: Optional[str] = None) -> PolicyOutput:
+               noise: Optional[Tensor] = None, meanflow_velocity: Optional[str] = None,
+               prev_chunk: Optional[Tensor] = None, delay: int = 0) -> PolicyOutput:
         """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable.
 
         `meanflow_velocity` ("boundary" | "identity"; None: `config.meanflow_sde_velocity`)
@@ -275,6 +305,16 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         `flow_sde_logprob_sigma_only` their gradient reaches σ only (reparameterised, SAC),
         without it the chain is data and the gradient reaches the network through the means
         (score-function / PPO form, that of `chain_log_prob`); see `flows.sample_sde`.
+
+        Real-time chunking (`flows/rtc.py`, flow_matching and mean_flow with any sampler):
+        `prev_chunk` [B, L, D] (env units) is what the previous chunk plans for this chunk's steps
+        0..L−1 (its actions from s on, after s executed ones: L = H − s), and `delay` d ≤ L is how
+        many control steps inference takes. The returned chunk's first d actions are prev_chunk's,
+        exactly; the rest of the overlap is guided towards prev_chunk with weights that decay
+        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free. Each sampling
+        step then costs one network call more with its vector–Jacobian product (none more for a
+        1-step MeanFlow). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
+        `chain_log_prob` to re-score it).
         """
         cfg = self.config
         chosen = self.resolve_sampler(sampler)
@@ -287,12 +327,30 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             raise ValueError(f"return_logprob: log-probs come from the SDE sampler; got sampler={chosen!r} "
                              f"(deterministic samplers have no density)")
         bound = self.bind(batch, meanflow_velocity)
+        delay = self._check_prev_chunk(batch, prev_chunk, delay)
+        if prev_chunk is not None and want_lp:
+            raise ValueError("return_logprob: not available with prev_chunk (a guided chain has no chain_log_prob "
+                             "to re-score it); pass return_logprob=False")
         param = next(self.model.parameters())
         if noise is None:
             noise = randn_rows(bound.batch_size, (cfg.action_chunk_size, cfg.action_dim), generator,
                                param.device)                                        # [B, H, D]
         velocity = bound.flow_velocity
         out = PolicyOutput()
+        if prev_chunk is not None:
+            prev = self.normalizers["actions"].normalize(prev_chunk.to(param.device, torch.float32))   # [B, L, D]
+            rtc = {"max_guidance_weight": cfg.rtc_guidance_weight, "schedule": cfg.rtc_schedule}
+            if chosen == "sde":
+                res = sample_sde_rtc(velocity, noise, prev, delay, steps, self.sigma, generator=generator,
+                                     clip_t=cfg.flow_sde_clip_t, **rtc)
+                x, out.chain, out.grid = res.actions, res.chain, res.grid
+            elif chosen == "euler" or cfg.decoder_type == "flow_matching":
+                x = sample_ode_rtc(velocity, noise, prev, delay, steps, **rtc)
+            else:
+                x = sample_meanflow_rtc(bound.avg_velocity, noise, prev, delay, steps, **rtc)
+            out.actions = self.normalizers["actions"].unnormalize(x)
+            out.actions[:, :delay] = prev_chunk[:, :delay].to(out.actions)      # exact, not round-tripped
+            return out
         if chosen == "sde":
             res = sample_sde(velocity, noise, steps, self.sigma, generator=generator,
                              return_logprob=want_lp, clip_t=cfg.flow_sde_clip_t,

@@ -27,7 +27,10 @@ PolicyFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """``policy_fn(states [B, S] float32, task_index [B] int64) -> actions [B, H, D]`` in env units.
 
 It may also take keywords ``episode_seeds [B]`` (each row's episode seed) and ``plan_indices [B]``
-(0 for an episode's first plan, then 1, 2, ...), or ``**kwargs``: then it is given both."""
+(0 for an episode's first plan, then 1, 2, ...), or ``**kwargs``: then it is given both. With
+``rtc=True`` it must take ``prev_chunks [B, L, D]`` and ``delay`` (real-time chunking): the rows
+that continue an episode are then planned in their own call, given the previous chunk's actions
+for the new chunk's steps 0..L−1."""
 
 
 def _takes_episode_keys(policy_fn: PolicyFn) -> bool:
@@ -39,14 +42,34 @@ def _takes_episode_keys(policy_fn: PolicyFn) -> bool:
         {"episode_seeds", "plan_indices"} <= {p.name for p in params}
 
 
-def _plan(policy_fn: PolicyFn, states: np.ndarray, task_index: int, n_action_steps: int, keys: dict) -> np.ndarray:
+def _takes_rtc_keys(policy_fn: PolicyFn) -> bool:
+    try:
+        params = inspect.signature(policy_fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.kind is p.VAR_KEYWORD for p in params) or {"prev_chunks", "delay"} <= {p.name for p in params}
+
+
+def _plan(policy_fn: PolicyFn, states: np.ndarray, task_index: int, needed: int, keys: dict) -> np.ndarray:
+    """The whole chunk [B, H, 4], clipped to [-1, 1]; H must cover the `needed` actions."""
     chunk = np.asarray(policy_fn(states, np.full(len(states), task_index, dtype=np.int64), **keys))
-    expected = f"[{len(states)}, H >= {n_action_steps}, 4]"
-    if chunk.ndim != 3 or chunk.shape[0] != len(states) or chunk.shape[2] != 4 or chunk.shape[1] < n_action_steps:
+    expected = f"[{len(states)}, H >= {needed}, 4]"
+    if chunk.ndim != 3 or chunk.shape[0] != len(states) or chunk.shape[2] != 4 or chunk.shape[1] < needed:
         raise ValueError(f"policy_fn output: expected an action chunk of shape {expected}, got {chunk.shape}")
     if not np.isfinite(chunk).all():
         raise ValueError("policy_fn output: expected finite actions, got NaN or Inf")
-    return np.clip(chunk[:, :n_action_steps], -1.0, 1.0)
+    return np.clip(chunk, -1.0, 1.0)
+
+
+def jerk_stats(actions: list, switches: list) -> tuple[float, int, float, int]:
+    """Squared jerk |a_k+1 − 2·a_k + a_k−1|² of executed actions (Meta-World's actions are hand
+    displacements per step, so their second difference is the hand's jerk): summed over every
+    stencil that spans a chunk boundary (the first action of a new chunk at index k: the stencils
+    centred at k − 1 and k), and over all stencils. Returns (boundary sum, count, all sum, count)."""
+    a = np.asarray(actions, dtype=np.float64).reshape(-1, 4)                  # [T, 4]
+    sq = np.square(a[2:] - 2 * a[1:-1] + a[:-2]).sum(-1) if len(a) >= 3 else np.zeros(0)  # [T-2], centred at 1..T-2
+    centres = sorted({c for k in switches for c in (k - 1, k) if 1 <= c <= len(a) - 2})
+    return float(sum(sq[c - 1] for c in centres)), len(centres), float(sq.sum()), len(sq)
 
 
 def _borrow_envs(name: str, n: int) -> list[SeededLayoutEnv]:
@@ -69,9 +92,20 @@ def evaluate(
     progress: Callable[[int, int, int, bool], None] | None = None,
     record: bool = False,
     on_step: Callable[[int, SeededLayoutEnv], None] | None = None,
+    delay: int = 0,
+    rtc: bool = False,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
+
+    ``delay`` d simulates inference that takes d control steps. An episode's first chunk is
+    planned before it moves and executes its actions 0..s+d−1 (s = ``n_action_steps``). Every
+    later chunk is planned from the observation at a re-planning time k, while the env goes on
+    executing the old chunk's actions for steps k..k+d−1; the new chunk, whose step j is time
+    k + j, takes over at k + d and executes its actions d..d+s−1. So a new plan starts every s
+    steps (d ≤ s, s + d ≤ H), and d = 0 is the synchronous loop. With ``rtc`` the new chunk is
+    conditioned on the old chunk's remaining actions (``prev_chunks`` = old[s:], the first d of
+    them those executed during inference); without it the chunks switch naively.
 
     ``task_index`` is passed to ``policy_fn`` (multi-task policies), and so are each row's episode seed
     and plan index if it takes them (see ``PolicyFn``); ``progress(done, total, episode, success)`` is
@@ -80,8 +114,11 @@ def evaluate(
     the goal (obs[36:39]). ``on_step(episode, env)`` is called after each reset and after each step
     of an episode, before the next reset of its env (``envs.render.EpisodeCamera`` films episodes so).
     Returns ``task``, ``success_rate``, and per
-    episode ``successes``, ``lengths``, ``returns``, ``seeds``, plus ``env_steps`` and
-    ``wall_time_s``.
+    episode ``successes``, ``lengths``, ``returns``, ``seeds``, plus ``env_steps``,
+    ``wall_time_s``, ``delay``, ``rtc``, ``boundary_jerk`` (mean squared jerk of the executed
+    actions over the stencils that span a chunk switch, ``jerk_stats``; None without switches),
+    ``jerk`` (over all stencils), ``boundaries`` (the number of boundary stencils) and
+    ``episode_boundary_jerk`` (each episode's own mean, None without a switch).
     """
     name = canonical_task(task)
     for arg, value, low in (("episodes", episodes, 1), ("n_action_steps", n_action_steps, 1), ("num_envs", num_envs, 1)):
@@ -89,6 +126,12 @@ def evaluate(
             raise ValueError(f"{arg}: expected an integer >= {low}, got {value!r}")
     if not isinstance(max_steps, (int, np.integer)) or not 1 <= max_steps <= MAX_EPISODE_STEPS:
         raise ValueError(f"max_steps: expected an integer in [1, {MAX_EPISODE_STEPS}] (Meta-World's episode cap), got {max_steps!r}")
+    if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or not 0 <= delay <= n_action_steps:
+        raise ValueError(f"delay: expected an integer in [0, n_action_steps={n_action_steps}] (one inference "
+                         f"per n_action_steps steps), got {delay!r}")
+    if rtc and not _takes_rtc_keys(policy_fn):
+        raise ValueError("rtc: expected a policy_fn that takes prev_chunks and delay keywords (see PolicyFn), "
+                         f"got {getattr(policy_fn, '__name__', type(policy_fn).__name__)} without them")
     envs = _borrow_envs(name, min(num_envs, episodes))
 
     seeds = eval_seeds(seed, episodes)
@@ -97,14 +140,17 @@ def evaluate(
     goals: list[np.ndarray | None] = [None] * episodes
     obs = np.zeros((len(envs), envs[0].observation_space.shape[0]), dtype=np.float32)
     slot_episode = [-1] * len(envs)
-    plans: list[np.ndarray | None] = [None] * len(envs)
+    plans: list[np.ndarray | None] = [None] * len(envs)       # actions queued for execution, [n, 4]
+    chunks: list[np.ndarray | None] = [None] * len(envs)      # the slot's latest whole chunk [H, 4]
     plan_count = [0] * episodes                 # plans made so far, per episode
+    executed: list[list[np.ndarray]] = [[] for _ in range(episodes)]
+    switches: list[list[int]] = [[] for _ in range(episodes)]   # step index of each new chunk's first action
     keyed = _takes_episode_keys(policy_fn)
     next_episode, finished, start = 0, 0, time.perf_counter()
 
     def begin(slot: int) -> None:
         nonlocal next_episode
-        slot_episode[slot], plans[slot] = -1, None
+        slot_episode[slot], plans[slot], chunks[slot] = -1, None, None
         if next_episode < episodes:
             obs[slot] = envs[slot].reset(seed=seeds[next_episode])[0]
             if record:
@@ -118,17 +164,29 @@ def evaluate(
         begin(slot)
     while finished < episodes:
         active = [s for s in range(len(envs)) if slot_episode[s] >= 0]
-        replan = [s for s in active if plans[s] is None or len(plans[s]) == 0]
-        if replan:
-            eps_now = [slot_episode[s] for s in replan]
+        first = [s for s in active if plans[s] is None]
+        later = [s for s in active if plans[s] is not None and len(plans[s]) == delay]
+        # With RTC the continuing rows carry their previous chunk: planned in a call of their own.
+        for group in ([first, later] if rtc else [sorted(first + later)]):
+            if not group:
+                continue
+            eps_now = [slot_episode[s] for s in group]
             keys = {"episode_seeds": np.array([seeds[e] for e in eps_now], dtype=np.int64),
                     "plan_indices": np.array([plan_count[e] for e in eps_now], dtype=np.int64)} if keyed else {}
-            for s, chunk in zip(replan, _plan(policy_fn, obs[replan], task_index, n_action_steps, keys)):
-                plans[s] = chunk
+            if rtc and group is later:
+                keys.update(prev_chunks=np.stack([chunks[s][n_action_steps:] for s in group]), delay=int(delay))
+            for s, chunk in zip(group, _plan(policy_fn, obs[group], task_index, n_action_steps + delay, keys)):
+                if plans[s] is None:                          # an episode's first chunk: planned before it moves
+                    plans[s] = chunk[: n_action_steps + delay]
+                else:                                         # takes over after the d queued old actions
+                    switches[slot_episode[s]].append(lengths[slot_episode[s]] + delay)
+                    plans[s] = np.concatenate([plans[s], chunk[delay: delay + n_action_steps]])
+                chunks[s] = chunk
             for e in eps_now:
                 plan_count[e] += 1
         for s in active:
             ep, action, plans[s] = slot_episode[s], plans[s][0], plans[s][1:]
+            executed[ep].append(action)
             obs[s], reward, _, _, info = envs[s].step(action)
             lengths[ep] += 1
             if record:
@@ -143,6 +201,8 @@ def evaluate(
                     progress(finished, episodes, ep, successes[ep])
                 begin(s)
     _idle_envs.setdefault(name, []).extend(envs)
+    per_episode = np.array([jerk_stats(a, k) for a, k in zip(executed, switches)]).reshape(-1, 4)   # [episodes, 4]
+    jerks = per_episode.sum(0)
     extra = {"trajectories": [{"hand": np.stack(h).tolist(), "goal": g.tolist()} for h, g in zip(hands, goals)]} \
         if record else {}
     return {
@@ -155,4 +215,10 @@ def evaluate(
         "seeds": seeds,
         "env_steps": int(sum(lengths)),
         "wall_time_s": time.perf_counter() - start,
+        "delay": int(delay),
+        "rtc": bool(rtc),
+        "boundary_jerk": float(jerks[0] / jerks[1]) if jerks[1] else None,
+        "jerk": float(jerks[2] / jerks[3]) if jerks[3] else None,
+        "boundaries": int(jerks[1]),
+        "episode_boundary_jerk": [float(b / n) if n else None for b, n in per_episode[:, :2]],
     }

@@ -3,12 +3,15 @@
 from .ddpm import ddpm_loss, sample_ddpm
 from .losses import flow_matching_loss, meanflow_loss, meanflow_target
 from .paths import interpolate, score_from_velocity, time_grid, velocity_from_sample
+from .rtc import (RTC_SCHEDULES, guidance_weight, rtc_guided_avg_velocity, rtc_guided_velocity,
+                  rtc_weights, sample_meanflow_rtc, sample_ode_rtc, sample_sde_rtc)
 from .samplers import (SDEResult, chain_log_prob, sample_meanflow, sample_ode, sample_sde,
                        velocity_from_meanflow)
 from .sigma import ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, make_sigma
 
-__all__ = ["ChurnSigma", "ExploringSigma", "FixedSigma", "LearnableSigma", "SDEResult",
+__all__ = ["RTC_SCHEDULES", "ChurnSigma", "ExploringSigma", "FixedSigma", "LearnableSigma", "SDEResult",
            "chain_log_prob", "ddpm_loss", "flow_matching_loss", "interpolate", "make_sigma",
-           "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
+           "guidance_weight", "meanflow_loss", "meanflow_target", "rtc_guided_avg_velocity",
+           "rtc_guided_velocity", "rtc_weights", "sample_meanflow_rtc", "sample_ode_rtc", "sample_sde_rtc", "sample_ddpm", "sample_meanflow", "sample_ode",
            "sample_sde", "score_from_velocity", "time_grid", "velocity_from_meanflow",
            "velocity_from_sample"]

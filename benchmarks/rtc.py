@@ -1,0 +1,238 @@
+"""Real-time chunking benchmark: naive switching vs RTC under simulated inference delay.
+
+    python -m benchmarks rtc                     # = python -m benchmarks.rtc; the full grid
+    python -m benchmarks rtc --tasks metaworld/push --episodes 10   # a taste
+
+For each task it trains (once, with `action-decoder train` defaults, no evaluation) a flow-matching
+and a MeanFlow policy under --runs/<task>-<decoder>/, then evaluates closed loop, re-planning every
+n_action_steps = 4 of 16 actions, for each sampling setting (FM K = 10, MF K = 1, MF K = 2), each
+delay d and each of naive switching and RTC: success and the boundary jerk (mean squared second
+difference of the executed actions over the stencils that span a chunk switch, `envs.evaluate`).
+Every evaluation draws the same noise per (episode, plan) in both arms, so the arms differ only by
+RTC. Per-chunk latency is timed for one state (batch 1) on this machine's threads, plain and RTC
+calls interleaved, the median over --latency-reps calls each. Rows go to --json; the page
+--table is rebuilt from them (text under the notes marker is kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+TASKS = ["metaworld/push", "metaworld/basketball", "metaworld/pick-place", "metaworld/door-open",
+         "metaworld/stick-pull"]
+SETTINGS = [("flow_matching", 10), ("mean_flow", 1), ("mean_flow", 2)]
+LABEL = {("flow_matching", 10): "FM K=10", ("mean_flow", 1): "MF K=1", ("mean_flow", 2): "MF K=2"}
+NOTES = "<!-- notes: kept when the table above is rebuilt -->"
+
+
+def train(task: str, decoder: str, runs: Path) -> Path:
+    out = runs / f"{task.split('/')[-1]}-{decoder}"
+    if not (out / "final" / "model.safetensors").is_file():
+        cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
+               "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
+        out.mkdir(parents=True, exist_ok=True)
+        with open(out.with_suffix(".log"), "a") as fh:
+            subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
+                           env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
+    return out / "final"
+
+
+def chunk_latency(policy, steps: int, delay: int, reps: int) -> tuple[float, float]:
+    """Median seconds of one plain and one RTC chunk for one state (batch 1), interleaved."""
+    import torch
+
+    cfg = policy.config
+    batch = {"state": torch.zeros(1, cfg.state_dim)}
+    prev = torch.zeros(1, cfg.action_chunk_size - cfg.n_action_steps, cfg.action_dim)
+    calls = {"plain": lambda: policy.predict_action_chunk(batch, steps=steps),
+             "rtc": lambda: policy.predict_action_chunk(batch, steps=steps, prev_chunk=prev, delay=delay)}
+    times = {k: [] for k in calls}
+    for rep in range(reps + 3):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            if rep >= 3:                                   # the first calls warm up
+                times[name].append(time.perf_counter() - start)
+    return statistics.median(times["plain"]), statistics.median(times["rtc"])
+
+
+def evaluate_grid(task: str, ckpt: Path, decoder: str, steps: int, args) -> list[dict]:
+    import torch
+
+    from action_decoder import ActionDecoderPolicy
+    from action_decoder.envs import evaluate
+    from action_decoder.evaluate import make_policy_fn
+
+    policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
+    plain, rtc = chunk_latency(policy, steps, max(args.delays), args.latency_reps)
+    rows = []
+    for delay in args.delays:
+        for use_rtc in (False, True):
+            fn = make_policy_fn(policy, 1, None, steps, torch.Generator().manual_seed(args.seed))
+            res = evaluate(fn, task, episodes=args.episodes, seed=args.seed, n_action_steps=policy.config.n_action_steps,
+                           num_envs=args.num_envs, delay=delay, rtc=use_rtc)
+            rows.append({"task": res["task"], "decoder": decoder, "steps": steps, "delay": delay, "rtc": use_rtc,
+                         "episodes": args.episodes, "seed": args.seed, "success_rate": res["success_rate"],
+                         "successes": int(sum(res["successes"])), "boundary_jerk": res["boundary_jerk"],
+                         "boundaries": res["boundaries"], "jerk": res["jerk"],
+                         "episode_boundary_jerk": res["episode_boundary_jerk"],
+                         "latency_ms": 1000 * (rtc if use_rtc else plain), "checkpoint": str(ckpt)})
+            print(f"[{res['task']}] {LABEL[(decoder, steps)]} d={delay} {'rtc' if use_rtc else 'naive'}: "
+                  f"success {res['success_rate']:.2f}, boundary jerk {res['boundary_jerk']:.4g}, "
+                  f"chunk {rows[-1]['latency_ms']:.1f} ms", flush=True)
+    return rows
+
+
+def retime(path: Path, args) -> None:
+    """Replace the latency of every row in `path` by a fresh timing of its checkpoint and setting."""
+    import torch
+
+    from action_decoder import ActionDecoderPolicy
+
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    rows = json.loads(path.read_text())
+    for ckpt, steps in sorted({(r["checkpoint"], r["steps"]) for r in rows}):
+        policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
+        plain, rtc = chunk_latency(policy, steps, max(r["delay"] for r in rows), args.latency_reps)
+        print(f"{ckpt} K={steps}: plain {1000 * plain:.1f} ms, RTC {1000 * rtc:.1f} ms", flush=True)
+        for r in rows:
+            if (r["checkpoint"], r["steps"]) == (ckpt, steps):
+                r["latency_ms"] = 1000 * (rtc if r["rtc"] else plain)
+    path.write_text(json.dumps(rows, indent=1))
+
+
+def _standard_error(values: list) -> float:
+    """Standard error of the mean of per-episode values (nan with fewer than two)."""
+    return statistics.stdev(values) / len(values) ** 0.5 if len(values) > 1 else float("nan")
+
+
+def tabulate(rows: list[dict], delays: list[int]) -> list[str]:
+    """One line per (setting, delay): success and boundary jerk of both arms over all tasks."""
+    lines = ["| setting | d | success naive | success RTC | boundary jerk naive | boundary jerk RTC | "
+             "jerk ratio RTC/naive | chunk ms plain | chunk ms RTC | cost ratio |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for setting in SETTINGS:
+        for d in delays:
+            arm = {r: [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d and x["rtc"] == r]
+                   for r in (False, True)}
+            if not arm[False] or not arm[True]:
+                continue
+            succ = {r: 100 * sum(x["successes"] for x in v) / sum(x["episodes"] for x in v) for r, v in arm.items()}
+            jerk = {r: sum(x["boundary_jerk"] * x["boundaries"] for x in v) / max(1, sum(x["boundaries"] for x in v))
+                    for r, v in arm.items()}
+            se = {r: _standard_error([j for x in v for j in x.get("episode_boundary_jerk", []) if j is not None])
+                  for r, v in arm.items()}
+            ms = {r: statistics.mean(x["latency_ms"] for x in v) for r, v in arm.items()}
+            lines.append(f"| {LABEL[setting]} | {d} | {succ[False]:.1f} | {succ[True]:.1f} | {jerk[False]:.4f} ± {se[False]:.4f} | "
+                         f"{jerk[True]:.4f} ± {se[True]:.4f} | {jerk[True] / jerk[False]:.2f} | {ms[False]:.1f} | {ms[True]:.1f} | "
+                         f"{ms[True] / ms[False]:.2f}× |")
+    return lines
+
+
+def per_task(rows: list[dict], delays: list[int]) -> list[str]:
+    tasks = sorted({r["task"] for r in rows})
+    head = "| setting | d | " + " | ".join(f"{t} naive / RTC" for t in tasks) + " |"
+    lines = [head, "|---|---|" + "---|" * len(tasks)]
+    for setting in SETTINGS:
+        for d in delays:
+            cells = []
+            for t in tasks:
+                got = {r: [x for x in rows if x["task"] == t and (x["decoder"], x["steps"]) == setting
+                           and x["delay"] == d and x["rtc"] == r] for r in (False, True)}
+                cells.append(" / ".join(f"{100 * sum(x['successes'] for x in v) / sum(x['episodes'] for x in v):.0f}"
+                                        if v else "–" for v in got.values()))
+            if any(c != "– / –" for c in cells):
+                lines.append(f"| {LABEL[setting]} | {d} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_page(rows: list[dict], path: Path, args, command: str) -> None:
+    delays = sorted({r["delay"] for r in rows})
+    n = {r["task"] for r in rows}
+    eps = sorted({r["episodes"] for r in rows})
+    # Run-to-run noise of a success rate over N episodes: the binomial standard error at p = 0.5 bounds it.
+    seeds = sorted({r["seed"] for r in rows})
+    n_eps = len(n) * len(seeds) * (eps[0] if eps else 0)
+    noise = 100 * (0.25 / n_eps) ** 0.5 if n_eps else float("nan")
+    head = [
+        "# Real-time chunking: naive switching vs RTC", "",
+        f"Generated by `{command}` on {time.strftime('%Y-%m-%d')} ({os.uname().machine}, "
+        f"{os.cpu_count()} CPU cores shared, {os.environ.get('OMP_NUM_THREADS', '?')} torch thread per process).", "",
+        f"Tasks: {', '.join(sorted(n))}; {'/'.join(map(str, eps))} episodes per task, seed and cell, "
+        f"evaluation seeds {', '.join(map(str, seeds))} (pooled), "
+        f"re-planning every 4 of 16 actions; d = simulated inference time in control steps. Both arms draw "
+        f"the same noise for each (episode, plan). Success is over all tasks' episodes ({n_eps} per cell); "
+        f"its run-to-run noise, estimated as the binomial standard error at 50 %, is ±{noise:.1f} points, so two "
+        f"cells differ beyond noise (2 standard errors of a difference) only by more than {2 * 2 ** 0.5 * noise:.0f} "
+        f"points. Boundary jerk: "
+        f"mean |a_k+1 − 2a_k + a_k−1|² over the stencils that span a chunk switch (all four action "
+        f"dimensions, gripper included), ± the standard error over episodes of each episode's mean (its "
+        f"run-to-run noise). Chunk ms: one state, median over {args.latency_reps} interleaved calls; "
+        f"RTC timed at d = {max(delays) if delays else 0} (vector–Jacobian products included).", "",
+    ]
+    body = ["## Over all tasks", "", *tabulate(rows, delays), "", "## Success per task (%)", "",
+            *per_task(rows, delays), ""]
+    notes = [NOTES, ""]
+    if path.is_file() and NOTES in path.read_text():
+        notes = [NOTES + path.read_text().split(NOTES, 1)[1].rstrip("\n"), ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(head + body + notes))
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", default=TASKS)
+    p.add_argument("--delays", nargs="+", type=int, default=[0, 2, 4])
+    p.add_argument("--settings", nargs="+", default=[f"{d}:{k}" for d, k in SETTINGS],
+                   help="decoder:steps pairs among " + ", ".join(f"{d}:{k}" for d, k in SETTINGS))
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--seed", type=int, default=0, help="evaluation seed; rows of several seeds are pooled")
+    p.add_argument("--num-envs", type=int, default=10)
+    p.add_argument("--latency-reps", type=int, default=30)
+    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>/final")
+    p.add_argument("--json", default="docs/benchmarks/rtc.json")
+    p.add_argument("--table", default="docs/benchmarks/rtc.md")
+    p.add_argument("--page-only", action="store_true", help="rebuild --table from the rows in --json, run nothing")
+    p.add_argument("--latency-only", action="store_true",
+                   help="re-time the chunks of the rows in --json (same checkpoints), keep their success and jerk")
+    args = p.parse_args(argv)
+    if args.latency_only:
+        retime(Path(args.json), args)
+        args.page_only = True
+    if args.page_only:
+        rows = json.loads(Path(args.json).read_text())
+        command = sorted({r.get("command", "") for r in rows} - {""})
+        write_page(rows, Path(args.table), args, " ; ".join(command) or "python -m benchmarks rtc")
+        return
+    settings = []
+    for s in args.settings:
+        decoder, _, steps = s.partition(":")
+        if (decoder, int(steps or 0)) not in SETTINGS:
+            raise SystemExit(f"--settings: expected decoder:steps among {[f'{d}:{k}' for d, k in SETTINGS]}, got {s!r}")
+        settings.append((decoder, int(steps)))
+    import torch
+
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    command = "python -m benchmarks rtc " + " ".join(argv if argv is not None else sys.argv[1:])
+    out = Path(args.json)
+    rows = json.loads(out.read_text()) if out.is_file() else []
+    for task in args.tasks:
+        for decoder, steps in settings:
+            ckpt = train(task, decoder, Path(args.runs))
+            new = [{**r, "command": command} for r in evaluate_grid(task, ckpt, decoder, steps, args)]
+            key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["rtc"], r["seed"])
+            rows = [r for r in rows if key(r) not in {key(n) for n in new}] + new
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(rows, indent=1))
+            write_page(rows, Path(args.table), args, " ; ".join(sorted({r.get("command", command) for r in rows})))
+
+
+if __name__ == "__main__":
+    main()
