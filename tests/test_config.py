@@ -81,5 +81,28 @@ def test_json_carries_every_field_and_a_format_version(tmp_path):
     # User code keeps the defaults of DecoderConfig(...): from_dict reads partial dicts.
     partial = {"decoder_type": "mean_flow", "format_version": CONFIG_FORMAT_VERSION}
     assert DecoderConfig.from_dict(partial) == DecoderConfig(decoder_type="mean_flow")
-    with pytest.raises(ValueError, match=rf"expected format_version {CONFIG_FORMAT_VERSION}, got 1"):
+    with pytest.raises(ValueError, match=rf"expected format_version 2..{CONFIG_FORMAT_VERSION}, got 1"):
         DecoderConfig.from_dict({**partial, "format_version": 1})
+    with pytest.raises(ValueError, match=rf"expected format_version 2..{CONFIG_FORMAT_VERSION}, got {CONFIG_FORMAT_VERSION + 1}"):
+        DecoderConfig.from_dict({**partial, "format_version": CONFIG_FORMAT_VERSION + 1})
+
+
+def test_an_older_format_version_reads_with_the_fields_it_lacked_set_to_their_old_behaviour(tmp_path):
+    """A format-2 config.json (every field of its version) loads; the fields later versions added take
+    the values of ADDED_FIELDS, and a field missing within its own version still raises."""
+    from action_decoder.config import ADDED_FIELDS
+
+    later = {k for version, added in ADDED_FIELDS.items() if version > 2 for k in added}
+    assert later, "ADDED_FIELDS names the fields added after format 2"
+    cfg = DecoderConfig(decoder_type="mean_flow", hidden_size=48)
+    old = {k: v for k, v in cfg.to_dict().items() if k not in later}
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({**old, "format_version": 2}))
+    loaded = DecoderConfig.from_json(path)
+    assert loaded.hidden_size == 48 and loaded.decoder_type == "mean_flow"
+    for version, added in ADDED_FIELDS.items():
+        for key, value in added.items():
+            assert getattr(loaded, key) == value
+    path.write_text(json.dumps({**{k: v for k, v in old.items() if k != "hidden_size"}, "format_version": 2}))
+    with pytest.raises(ValueError, match=r"missing field\(s\) \['hidden_size'\]"):
+        DecoderConfig.from_json(path)

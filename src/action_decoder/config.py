@@ -26,7 +26,13 @@ RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
 # carries every field: a checkpoint is read back as it was trained, never completed with
 # defaults (files without a version, written before it existed, are version 1).
-CONFIG_FORMAT_VERSION = 2
+CONFIG_FORMAT_VERSION = 3
+# The fields each format version added, with the values that keep an older checkpoint's behaviour:
+# a config.json of an older (still readable) version gets them filled in when it is read.
+ADDED_FIELDS: dict[int, dict[str, Any]] = {
+    3: {"rtc_guidance_weight": 5.0, "rtc_schedule": "exp"},
+}
+OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
 # the same K. On N(0, 0.4²) chunks the SDE's std at K = 1, 2, 3, 10 is 0.74, 0.17, 0.23, 0.34
 # (churn; the ODE: 0.00, 0.14, 0.22, 0.34) and 3.30, 0.55, 0.37, 0.38 (explore); on two modes at
@@ -198,9 +204,13 @@ class DecoderConfig:
         config would otherwise silently change the behaviour of the weights it was saved with."""
         data = dict(data)
         version = data.pop("format_version", None)
-        if version is not None and version != CONFIG_FORMAT_VERSION:
-            raise ValueError(f"DecoderConfig: expected format_version {CONFIG_FORMAT_VERSION}, got {version!r} "
-                             f"(written by another version of action-decoder)")
+        readable = range(OLDEST_FORMAT_VERSION, CONFIG_FORMAT_VERSION + 1)
+        if version is not None and (isinstance(version, bool) or version not in readable):
+            raise ValueError(f"DecoderConfig: expected format_version {OLDEST_FORMAT_VERSION}..{CONFIG_FORMAT_VERSION}, "
+                             f"got {version!r} (written by another version of action-decoder)")
+        for added in range(version or CONFIG_FORMAT_VERSION, CONFIG_FORMAT_VERSION):
+            for key, value in ADDED_FIELDS.get(added + 1, {}).items():
+                data.setdefault(key, value)
         known = [f.name for f in fields(cls)]
         unknown = sorted(set(data) - set(known))
         if unknown:
