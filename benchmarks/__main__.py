@@ -1,4 +1,7 @@
-"""python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]"""
+"""python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]
+
+python -m benchmarks multimodal [--quick] [--tiny] ...: the multimodal benchmark (benchmarks/multimodal.py).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +14,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 def main(argv: list[str] | None = None) -> int:
     import argparse
+
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["multimodal"]:
+        from .multimodal import main as multimodal_main
+        return multimodal_main(argv[1:])
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
