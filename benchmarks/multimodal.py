@@ -239,7 +239,8 @@ def table(results: dict) -> str:
     for task, key, name, fmt in rows:
         if task not in results:
             continue
-        cells = [fmt.format(results[task][c][key]) if c in results[task] else "–" for c in cols]
+        cells = [fmt.format(results[task][c][key]) if c in results[task] and results[task][c][key] == results[task][c][key]
+                 else "–" for c in cols]                                               # NaN (no on-mode sample): –
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
