@@ -106,8 +106,9 @@ def test_one_step_rows_regress_the_one_step_map():
 
 
 def test_tiny_benchmark_runs(tmp_path, capsys):
-    assert mm.main(["--tiny", "--decoders", "mean_flow", "--out", str(tmp_path),
-                    "--recipe", "one_step_share=0.5"]) == 0
+    from benchmarks.__main__ import main                                       # python -m benchmarks multimodal
+    assert main(["multimodal", "--tiny", "--decoders", "mean_flow", "--out", str(tmp_path),
+                 "--recipe", "one_step_share=0.5"]) == 0
     data = json.loads((tmp_path / "multimodal_run.json").read_text())
     assert set(data["results"]) == {"synthetic", "obstacle"}
     assert set(data["results"]["synthetic"]) == {"MF K=1", "MF K=2"}
