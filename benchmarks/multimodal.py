@@ -257,8 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recipe", nargs="*", default=[], metavar="KEY=VALUE",
                    help=f"MeanFlow recipe overrides, keys {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}")
-    p.add_argument("--out", default=None, help="directory for multimodal.json and the table "
-                   "(default docs/benchmarks; outputs/multimodal-quick for --quick/--tiny)")
+    p.add_argument("--out", default=None, help="directory for the JSON (default docs/benchmarks/multimodal.json "
+                   "for the full run; else outputs/multimodal[-quick]/multimodal_run.json)")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     b = Budget()
@@ -279,12 +279,14 @@ def main(argv: list[str] | None = None) -> int:
         results = {t: (run_synthetic if t == "synthetic" else run_obstacle)(a.decoders, b, a.seed) for t in tasks}
     finally:
         use_loss_options({})
-    out = Path(a.out or ("outputs/multimodal-quick" if a.quick or a.tiny else "docs/benchmarks"))
+    full = not (a.quick or a.tiny or a.only or a.recipe or a.steps is not None) and len(set(a.decoders)) == 3
+    out = Path(a.out or ("docs/benchmarks" if full else "outputs/multimodal-quick" if a.quick or a.tiny
+                         else "outputs/multimodal"))
     out.mkdir(parents=True, exist_ok=True)
     meta = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
             "torch": torch.__version__, "threads": torch.get_num_threads(), "seed": a.seed,
             "budget": b.__dict__, "argv": argv}
-    name = "multimodal" if not a.recipe and a.only is None else "multimodal_run"
+    name = "multimodal" if full else "multimodal_run"                 # a partial run never replaces the table's
     (out / f"{name}.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
     print(table(results))
     return 0
