@@ -1,5 +1,7 @@
 """python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]
-python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)"""
+python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)
+python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchmark, benchmarks/multimodal.py)
+"""
 
 from __future__ import annotations
 
@@ -19,6 +21,10 @@ def main(argv: list[str] | None = None) -> int:
 
         rtc_main(argv[1:])
         return 0
+    if argv[:1] == ["multimodal"]:
+        from .multimodal import main as multimodal_main
+
+        return multimodal_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks and few rounds (smoke test)")

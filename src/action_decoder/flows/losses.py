@@ -68,7 +68,8 @@ TIME_DISTS = ("logit_normal", "uniform")
 
 def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: float,
                           generator: Optional[torch.Generator] = None, device=None,
-                          dtype: torch.dtype = torch.float32, dist: str = "logit_normal"):
+                          dtype: torch.dtype = torch.float32, dist: str = "logit_normal",
+                          one_step_share: float = 0.0):
     """(t, r, n): t ≤ r from two ordered draws; rows n: have r = t, from one draw.
 
     The r = t rows regress the instantaneous velocity, as flow matching does, so their t keeps
@@ -80,9 +81,15 @@ def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: fl
     noise is +0.4 here); it rarely draws the whole interval (t ≈ 0, r ≈ 1) that 1-step
     sampling uses. "uniform": both times U[0, 1]. The first n = round(ratio·B) rows keep
     r ≠ t; rows are i.i.d., so a fixed split costs no host sync.
+
+    `one_step_share`: the first round(share·n) of the r ≠ t rows take (t, r) = (0, 1) exactly,
+    the whole interval a 1-step sampler jumps; ordered uniform pairs land within 0.05 of that
+    corner with probability 0.005.
     """
     if dist not in TIME_DISTS:
         raise ValueError(f"time_dist: expected one of {list(TIME_DISTS)}, got {dist!r}")
+    if not 0.0 <= one_step_share <= 1.0:
+        raise ValueError(f"one_step_share: expected a fraction in [0, 1], got {one_step_share!r}")
     if dist == "uniform":
         s = torch.rand(batch, 2, generator=generator, device=device, dtype=dtype)
     else:
@@ -90,13 +97,18 @@ def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: fl
     n = int(round(ratio_r_neq_t * batch))
     t = torch.cat([s[:n].min(1).values, s[n:, 0]])
     r = torch.cat([s[:n].max(1).values, t[n:]])
+    m = int(round(one_step_share * n))
+    if m:
+        t, r = t.clone(), r.clone()
+        t[:m], r[:m] = 0.0, 1.0
     return t, r, n
 
 
 def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optional[torch.Generator] = None,
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
-                  adaptive_c: float = 1e-3, time_dist: str = "logit_normal") -> Tensor:
+                  adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
+                  one_step_share: float = 0.0) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -114,7 +126,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
-                                    time_dist)
+                                    time_dist, one_step_share)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e
     deltas = []

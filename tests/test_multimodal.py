@@ -1,0 +1,119 @@
+"""The multimodal benchmark: its metrics on known inputs, the obstacle task's expert, a tiny run,
+and the MeanFlow recipe option it measures (rows at (t, r) = (0, 1))."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from action_decoder.envs.obstacle_routes import (MAX_STEPS, expert_action, expert_dataset, expert_episode,
+                                                  rollout)
+from action_decoder.flows.losses import meanflow_loss, sample_meanflow_times
+from benchmarks import multimodal as mm
+
+
+@pytest.fixture(scope="module")
+def modes():
+    state = torch.randn(64, 4, generator=torch.Generator().manual_seed(0))
+    return mm.routes(state)                                                   # [N, 2, H, 4]
+
+
+def test_separation_and_tolerance():
+    # bend sin(πh)·c with RMS(c) ≈ 0.73: the routes are ≈ 1.0 apart, the midpoint 0.5 from each.
+    assert 0.95 < mm.separation() < 1.05
+
+
+def test_exact_balanced_samples_score_perfectly(modes):
+    samples = modes.repeat_interleave(4, 1)                                    # [N, 8, H, 4]: 4 on each
+    m = mm.mode_metrics(samples, modes, 0.1)
+    assert m["on_mode"] == 1.0 and m["coverage"] == 1.0 and m["majority_share"] == 0.5
+    assert m["energy"] < 1e-6 and m["rms_to_nearest"] < 1e-6
+
+
+def test_midpoint_is_off_mode_and_far_in_energy(modes):
+    mid = modes.mean(1, keepdim=True).expand(-1, 8, -1, -1)                    # the average of the routes
+    m = mm.mode_metrics(mid, modes, 0.1)
+    assert m["on_mode"] == 0.0 and m["coverage"] == 0.0
+    # E|X−Y| = d/2, E|X−X'| = 0, E|Y−Y'| = d/2: energy = d/2 with d the separation.
+    assert m["energy"] == pytest.approx(mm.separation() / 2, rel=1e-4)
+
+
+def test_unbalanced_split_shows_in_balance_coverage_and_energy(modes):
+    # 6 of 8 samples on route A in every state; then all on A.
+    skew = torch.cat([modes[:, :1].expand(-1, 6, -1, -1), modes[:, 1:].expand(-1, 2, -1, -1)], 1)
+    m = mm.mode_metrics(skew, modes, 0.1)
+    assert m["on_mode"] == 1.0 and m["majority_share"] == pytest.approx(0.75) and m["coverage"] == 1.0
+    one = mm.mode_metrics(modes[:, :1].expand(-1, 8, -1, -1), modes, 0.1)
+    assert one["majority_share"] == 1.0 and one["coverage"] == 0.0
+    # the energy distance grows with the imbalance (q = 3/4 on A, then q = 1)
+    assert 1e-3 < m["energy"] < one["energy"]
+    # Half the states collapsed to A, half to B: pooled balance is perfect, coverage is not.
+    per_state = torch.where(torch.arange(64)[:, None, None, None] % 2 == 0, modes[:, :1], modes[:, 1:])
+    ps = mm.mode_metrics(per_state.expand(-1, 8, -1, -1), modes, 0.1)
+    assert ps["majority_share"] == 0.5 and ps["coverage"] == 0.0 and ps["energy"] > 0.2
+
+
+def test_tolerance_is_a_strict_radius(modes):
+    off = modes[:, :1] + 0.2                                                   # RMS 0.2 from route A
+    assert mm.mode_metrics(off.expand(-1, 2, -1, -1), modes, 0.1)["on_mode"] == 0.0
+    assert mm.mode_metrics(off.expand(-1, 2, -1, -1), modes, 0.25)["on_mode"] == 1.0
+
+
+@pytest.mark.parametrize("side", [1, -1])
+def test_expert_succeeds_by_both_routes(side):
+    for seed in range(20):
+        obs, chunks, ok = expert_episode(seed, side)
+        assert ok and obs.shape[1:] == (6,) and chunks.shape == (len(obs), 16, 2) and len(obs) < MAX_STEPS
+        res = rollout(lambda o: np.stack([expert_action(o, side)] * 16), seed, n_action_steps=1)
+        assert res == {"success": True, "collided": False, "route": side}
+
+
+def test_averaging_the_routes_collides():
+    avg = lambda o: np.stack([(expert_action(o, 1) + expert_action(o, -1)) / 2] * 16)   # noqa: E731
+    res = [rollout(avg, seed) for seed in range(10)]
+    assert not any(r["success"] for r in res) and all(r["collided"] for r in res)
+
+
+def test_expert_dataset_is_balanced_and_bimodal_at_the_start():
+    states, chunks = expert_dataset(40, seed=0)
+    start = states[:, 0] == -1.0                                               # first frame of each episode
+    assert int(start.sum()) == 40
+    up = chunks[start][:, :8, 1].mean(1) > 0                                   # heading above the obstacle
+    assert 10 <= int(up.sum()) <= 30
+
+
+def test_one_step_rows_take_the_whole_interval():
+    t, r, n = sample_meanflow_times(128, 0.25, 0.4, 1.0, torch.Generator().manual_seed(0), dist="uniform",
+                                    one_step_share=0.5)
+    assert n == 32 and torch.all(t[:16] == 0) and torch.all(r[:16] == 1)
+    assert torch.all((t[16:n] > 0) & (r[16:n] < 1) & (t[16:n] <= r[16:n])) and torch.equal(t[n:], r[n:])
+    base = sample_meanflow_times(128, 0.25, 0.4, 1.0, torch.Generator().manual_seed(0), dist="uniform")
+    assert torch.equal(base[0][16:], t[16:]) and torch.equal(base[1][16:], r[16:])   # the rest unchanged
+    with pytest.raises(ValueError, match="one_step_share"):
+        sample_meanflow_times(8, 0.25, 0.4, 1.0, one_step_share=1.5)
+
+
+def test_one_step_rows_regress_the_one_step_map():
+    # A point mass at a: u(z, t, r) = (a − z)/(1 − t) for every r; with every row at (0, 1) it has
+    # loss 0 (its total derivative vanishes there), and a u that depends on r − t does not.
+    a = torch.full((16, 4, 2), 0.7)
+    exact = lambda z, t, r: (a[: z.shape[0]] - z) / (1 - t).reshape(-1, 1, 1)   # noqa: E731
+    assert meanflow_loss(exact, a, torch.Generator().manual_seed(0), ratio_r_neq_t=1.0,
+                         one_step_share=1.0).item() < 1e-9
+    wrong = lambda z, t, r: exact(z, t, r) * (1 + (r - t) * 0.5).reshape(-1, 1, 1)   # noqa: E731
+    assert meanflow_loss(wrong, a, torch.Generator().manual_seed(0), ratio_r_neq_t=1.0, one_step_share=1.0) > 0.1
+
+
+def test_tiny_benchmark_runs(tmp_path, capsys):
+    from benchmarks.__main__ import main                                       # python -m benchmarks multimodal
+    assert main(["multimodal", "--tiny", "--decoders", "mean_flow", "--out", str(tmp_path),
+                 "--recipe", "one_step_share=0.5"]) == 0
+    data = json.loads((tmp_path / "multimodal_run.json").read_text())
+    assert set(data["results"]) == {"synthetic", "obstacle"}
+    assert set(data["results"]["synthetic"]) == {"MF K=1", "MF K=2"}
+    assert data["meta"]["budget"]["recipe"] == {"one_step_share": 0.5}
+    assert mm.policy_mod.meanflow_loss is meanflow_loss          # the loss option ends with the run
+    assert "| on a mode" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--recipe"):
+        mm.main(["--tiny", "--recipe", "ratio"])
