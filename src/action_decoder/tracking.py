@@ -78,7 +78,7 @@ class RunLogger:
     events too, so TensorBoard shows a run while it trains and a killed run keeps its curve.
 
     `start_step`: the step a run starts or resumes from. The log's rows past it are dropped and
-    TensorBoard is told to drop its events past it (a `SessionLog.START` at `start_step + 1`), so a
+    TensorBoard is told to drop its events past it (the restart marker `purge_step = start_step + 1`), so a
     resumed run shows each step once. None: add to what is there (an evaluation of a finished run).
     `wandb_project`: also log to W&B (None: off); a run resumed past step 0 continues its W&B run.
     """
