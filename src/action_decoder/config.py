@@ -21,6 +21,7 @@ FLOW_PREDICTIONS = ("velocity", "sample")
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
 MEANFLOW_VELOCITIES = ("boundary", "identity")
+MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
 # carries every field: a checkpoint is read back as it was trained, never completed with
@@ -73,6 +74,10 @@ class DecoderConfig:
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
+    # How training gets du/dt for the r ≠ t rows: "jvp" (exact, forward-mode AD) or
+    # "finite_difference" (central difference in one no-grad call; float32/float64 networks only).
+    # Step cost and quality of both: docs/benchmarks/meanflow_cost.md.
+    meanflow_dudt: str = "jvp"
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
@@ -113,6 +118,7 @@ class DecoderConfig:
         _choice("meanflow_time_dist", self.meanflow_time_dist, ("logit_normal", "uniform"))
         _choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
+        _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         if self.flow_sde_t_min is not None:
             _finite("flow_sde_t_min", self.flow_sde_t_min)
             if not 0.0 < self.flow_sde_t_min <= 1.0:

@@ -199,7 +199,8 @@ class ActionDecoderPolicy(nn.Module):
             loss = meanflow_loss(self._flow_net, actions, generator, cond,
                                  ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, time_mean=cfg.meanflow_time_mean,
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
-                                 adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist)
+                                 adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
+                                 dudt=cfg.meanflow_dudt)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)
