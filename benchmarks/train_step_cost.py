@@ -2,6 +2,7 @@
 
     python -m benchmarks.train_step_cost                 # timing table (paired rounds), both sizes
     python -m benchmarks.train_step_cost --quality       # + the synthetic two-route task, jvp vs fd
+    python -m benchmarks.train_step_cost --precision-only [--checkpoint DIR]   # du/dt error vs step
 
 Timing: one AdamW step (zero_grad, loss, backward, step) of the CLI's recipe: batch 128, MeanFlow
 with r ≠ t on 0.25 of the rows, uniform times, p = 0.5, the clean-chunk head; flow matching with
@@ -21,6 +22,7 @@ then the median and the quartiles over rounds are reported. Variants:
 from __future__ import annotations
 
 import argparse
+import copy
 import datetime
 import functools
 import importlib.util
@@ -29,7 +31,7 @@ import os
 import platform
 import sys
 from pathlib import Path
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -133,20 +135,74 @@ def time_size(name: str, size: tuple, reps: int, warmup: int) -> dict:
     return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows}
 
 
-def quality(seeds: List[int], steps: int) -> List[dict]:
+def quality(seeds: List[int], steps: int, methods=("jvp", "finite_difference")) -> List[dict]:
     """scripts/meanflow_norm_ablation.py's synthetic two-route task, jvp vs finite difference."""
     path = Path(__file__).resolve().parents[1] / "scripts" / "meanflow_norm_ablation.py"
     spec = importlib.util.spec_from_file_location("meanflow_norm_ablation", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     out = []
-    for dudt in ("jvp", "finite_difference"):
+    for dudt in methods:
         mod.DecoderConfig = functools.partial(DecoderConfig, meanflow_dudt=dudt)
         for seed in seeds:
             res = {"dudt": dudt, **mod.synthetic(seed, steps, 128)}
             print(json.dumps(res), flush=True)
             out.append(res)
     return out
+
+
+def precision(checkpoint: Optional[str] = None, batch: int = 256) -> dict:
+    """Error of the float32 target v − (t − r)·du/dt per way of getting du/dt, against the float64
+    JVP, on the CLI's network (random weights, clean-chunk head) or a saved MeanFlow checkpoint;
+    random chunks, states N(0, 0.3²) (checkpoint) or N(0, 1), times uniform with r ≠ t on all rows."""
+    torch.manual_seed(0)
+    if checkpoint:
+        policy = ActionDecoderPolicy.from_pretrained(checkpoint)
+    else:
+        policy = _policy("mean_flow", next(iter(SIZES.values())))
+    policy.eval()
+    g = torch.Generator().manual_seed(1)
+    state = torch.randn(batch, policy.config.state_dim, generator=g) * (0.3 if checkpoint else 1.0)
+    a = 0.5 * torch.randn(batch, 16, policy.config.action_dim, generator=g)
+    t, r, _ = losses.sample_meanflow_times(batch, 1.0, 0.4, 1.0, g, dist="uniform")
+    e = torch.randn(a.shape, generator=g)
+    z, v = interpolate(e, a, t), a - e
+    p64 = copy.deepcopy(policy).double()
+
+    def bound(pol, dtype):
+        cond = pol._prepare({"state": state.to(dtype)})
+        return lambda x, tt, rr: pol._flow_net(x, tt, rr, **cond)
+
+    f32, f64 = bound(policy, torch.float32), bound(p64, torch.float64)
+    gap = (t - r).double()[:, None, None]
+    with torch.no_grad():
+        ref = torch.func.jvp(f64, (z.double(), t.double(), r.double()),
+                             (v.double(), torch.ones_like(t).double(), torch.zeros_like(r).double()))[1]
+        target = v.double() - gap * ref
+        rms = lambda x: x.square().mean().sqrt().item()                                  # noqa: E731
+        err = lambda d: {"rms": rms(gap * (d.double() - ref)), "max": (gap * (d.double() - ref)).abs().max().item()}  # noqa: E731
+        out = {"network": checkpoint or "CLI default, random weights", "target_rms": rms(target),
+               "dudt_rms": rms(ref), "dudt_max": ref.abs().max().item(),
+               "jvp_float32": err(torch.func.jvp(f32, (z, t, r), (v, torch.ones_like(t), torch.zeros_like(r)))[1]),
+               "steps": []}
+        for h in (1e-4, 3e-5, 1e-5, 3e-6):
+            central = (f32(z + h * v, t + h, r) - f32(z - h * v, t - h, r)) / (2 * h)
+            forward = (f32(z + h * v, t + h, r) - f32(z, t, r)) / h
+            out["steps"].append({"h": h, "central": err(central), "forward": err(forward)})
+    return out
+
+
+def precision_table(prec: List[dict]) -> str:
+    lines = ["| network | target rms | du/dt | step h | central: rms / max error | forward: rms / max error |",
+             "|---|---|---|---|---|---|"]
+    for p in prec:
+        j = p["jvp_float32"]
+        lines.append(f"| {p['network']} | {p['target_rms']:.2f} | JVP in float32 | – | {j['rms']:.1e} / {j['max']:.1e} | |")
+        for s in p["steps"]:
+            c, f = s["central"], s["forward"]
+            lines.append(f"| | | difference | {s['h']:.0e} | {c['rms']:.1e} / {c['max']:.1e} | "
+                         f"{f['rms']:.1e} / {f['max']:.1e} |")
+    return "\n".join(lines)
 
 
 def table(results: List[dict]) -> str:
@@ -169,19 +225,31 @@ def main(argv=None) -> int:
     p.add_argument("--quality", action="store_true", help="also train the synthetic two-route task")
     p.add_argument("--quality-steps", type=int, default=1500)
     p.add_argument("--seeds", default="0", help="comma-separated seeds of the quality runs")
-    p.add_argument("--out", default="docs/benchmarks/meanflow_cost.json")
+    p.add_argument("--quality-only", action="store_true", help="only the quality runs")
+    p.add_argument("--dudt", default="jvp,finite_difference", help="comma-separated methods of the quality runs")
+    p.add_argument("--precision-only", action="store_true", help="only the du/dt error table (seconds)")
+    p.add_argument("--checkpoint", action="append", default=[],
+                   help="a MeanFlow checkpoint whose du/dt error to measure too (repeatable)")
+    p.add_argument("--out", default=None, help="JSON results (default: docs/benchmarks/meanflow_cost.json; "
+                   "meanflow_cost_precision.json / _quality.json with --precision-only / --quality-only)")
     a = p.parse_args(argv)
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     results = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
                "machine": f"{os.cpu_count()}-core CPU, torch {torch.__version__}, {torch.get_num_threads()} thread(s)",
                "python": platform.python_version(), "command": "python -m benchmarks.train_step_cost "
                + " ".join(sys.argv[1:] if argv is None else argv), "timing": []}
-    for name, size in SIZES.items():
-        print(f"[train_step_cost] {name}, batch {BATCH}, {a.reps} rounds", flush=True)
-        results["timing"].append(time_size(name, size, a.reps, a.warmup))
-    print(table(results["timing"]), flush=True)
-    if a.quality:
-        results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps)
+    if not a.quality_only:
+        results["precision"] = [precision(c) for c in [None, *a.checkpoint]]
+        print(precision_table(results["precision"]), flush=True)
+    if not (a.precision_only or a.quality_only):
+        for name, size in SIZES.items():
+            print(f"[train_step_cost] {name}, batch {BATCH}, {a.reps} rounds", flush=True)
+            results["timing"].append(time_size(name, size, a.reps, a.warmup))
+        print(table(results["timing"]), flush=True)
+    if a.quality or a.quality_only:
+        results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps, a.dudt.split(","))
+    part = "_precision" if a.precision_only else "_quality" if a.quality_only else ""
+    a.out = a.out or f"docs/benchmarks/meanflow_cost{part}.json"
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(results, indent=1) + "\n")
     print(f"[train_step_cost] wrote {a.out}", flush=True)
