@@ -53,8 +53,8 @@ def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[
 
 # Central-difference step along (v, 1, 0) in float32. The time embedding's shortest period
 # (4e-3) makes u vary fast in t: on the CLI's network (random and trained) the error of
-# (t − r)·du/dt is smallest near this step, rms 4e-3–7e-3 against a target of rms 5–10
-# (docs/benchmarks/meanflow_cost.md); 1e-4 truncates 3–5× worse, 3e-6 rounds 5–8× worse.
+# (t − r)·du/dt is smallest near this step, rms 3e-3–6e-3 against a target of rms 5–9
+# (docs/benchmarks/meanflow_cost.md); 1e-4 truncates 4–6× worse, 3e-6 rounds 8–9× worse.
 FD_STEP_FLOAT32 = 3e-5
 
 
