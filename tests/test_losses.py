@@ -324,7 +324,7 @@ def test_meanflow_dudt_is_validated():
                         a.bfloat16(), dudt="finite_difference")
     with torch.autocast("cpu", dtype=torch.bfloat16), pytest.raises(ValueError, match="autocast"):
         meanflow_loss(lambda x, t, r: x, a, dudt="finite_difference")
-    bf16 = _expert_policy().to(torch.bfloat16)
+    bf16 = _expert_policy(meanflow_dudt="finite_difference").to(torch.bfloat16)
     batch = {"state": torch.randn(8, 7), "actions": a}
     with pytest.raises(ValueError, match="meanflow_dudt: 'finite_difference' needs float32 or float64 weights, "
                                          "got torch.bfloat16"):
