@@ -185,6 +185,8 @@ def _train_variants(bc: BenchConfig, size: NetSize) -> Dict[str, DecoderConfig]:
     variants = {"FM": size.config("flow_matching")}
     for q in bc.mf_ratios:
         variants[f"MF (r≠t on {q:g} of rows)"] = size.config("mean_flow", meanflow_ratio_r_neq_t=q)
+    variants["MF (r≠t on 0.25, du/dt by finite difference)"] = size.config(
+        "mean_flow", meanflow_ratio_r_neq_t=0.25, meanflow_dudt="finite_difference")
     variants["DDPM"] = size.config("DDPM")
     return variants
 

@@ -5,9 +5,10 @@ import pytest
 import torch
 from torch import nn
 
-from action_decoder import (DecoderConfig, ddpm_loss, flow_matching_loss, meanflow_loss, meanflow_target,
+from action_decoder import (ActionDecoderPolicy, DecoderConfig, ddpm_loss, flow_matching_loss, meanflow_loss, meanflow_target,
                             sample_ddpm)
 from action_decoder.flows.ddpm import inference_scheduler
+from action_decoder.flows import losses
 from action_decoder.flows.losses import sample_meanflow_times
 from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
 
@@ -217,3 +218,134 @@ def test_clip_sample_bounds_the_x0_prediction(prediction_type):
     assert x.abs().max() <= 1 + 1e-6 and x.abs().min() > 0.9
     unclipped = sample_ddpm(far.ddpm_model(alphas, prediction_type), noise, DecoderConfig(prediction_type=prediction_type), 10)
     assert torch.allclose(unclipped.mean(0), far.means[0], atol=0.05)
+
+
+# ------------------------------------------------------------------ du/dt: JVP or finite difference
+def _gauss_target(gaussian, dtype, dudt):
+    z, t, r = (x.to(dtype) for x in _points(64, seed=1))
+    g = Gaussian(gaussian.mean.to(dtype), gaussian.std)
+    theta = nn.Parameter(torch.ones((), dtype=dtype))
+    u, target = meanflow_target(lambda x, tt, rr: theta * g.avg_velocity(x, tt, rr), z, t, r, g.velocity(z, t),
+                                dudt=dudt)
+    return u, target, g.avg_velocity(z, t, r).double()
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-7), (torch.float32, 2e-2)])
+def test_finite_difference_target_matches_the_closed_form_average_velocity(gaussian, dtype, tol):
+    """With the exact u and v the identity gives target == u. The central difference's error is
+    |t − r|·(h²/6·|u'''| + rounding(u)/h); u = (z_r − z)/(r − t) rounds by eps·|z|/|r − t|, so the
+    target's rounding error is about eps·|z|/h: 1.2e-7·3/3e-5 ≈ 1.2e-2 in float32 (h = 3e-5) and
+    2.2e-16·3/3.7e-8 ≈ 2e-8 in float64 (h = 3.7e-8); truncation is far smaller on this smooth u."""
+    u, target, exact = _gauss_target(gaussian, dtype, "finite_difference")
+    _, target_jvp, _ = _gauss_target(gaussian, dtype, "jvp")
+    assert u.requires_grad and not target.requires_grad
+    assert (target.double() - exact).abs().max() < tol
+    assert (target.double() - target_jvp.double()).abs().max() < tol
+    # The du/dt term moves the target by far more than the tolerance: the test has teeth.
+    z, t, r = _points(64, seed=1)
+    assert (gaussian.velocity(z, t) - exact).abs().max() > 20 * tol
+    assert losses.fd_step(torch.float32) == 3e-5 and 3e-8 < losses.fd_step(torch.float64) < 4e-8
+
+
+def _expert_policy(dtype=torch.float32, **kw):
+    torch.manual_seed(0)
+    cfg = DecoderConfig(decoder_type="mean_flow", hidden_size=64, num_hidden_layers=2, num_attention_heads=4,
+                        num_key_value_heads=2, state_dim=7, action_dim=4, action_chunk_size=16,
+                        flow_prediction="sample", **kw)
+    return ActionDecoderPolicy(cfg).to(dtype)
+
+
+def test_finite_difference_target_matches_jvp_on_the_network_in_float32():
+    """On the Action Expert (random weights, clean-chunk head) the float32 central difference
+    agrees with the float64 JVP to 1e-3 of the target's rms: the time embedding's 4e-3 period
+    makes u'' and u''' large in t (|du/dt| up to ~10² here), so truncation (h·ω)²/6 ≈ 4e-4 of the
+    fast part and rounding eps/h ≈ 4e-3 of |u| set the error; measured 5e-4–6e-4 over seeds 2–4
+    (the CLI's network: docs/benchmarks/meanflow_cost.md). The float32 JVP is 25× closer (2e-5)."""
+    policy = _expert_policy()
+    g = torch.Generator().manual_seed(2)
+    state, a = torch.randn(128, 7, generator=g), torch.randn(128, 16, 4, generator=g)
+    t, r, _ = sample_meanflow_times(128, 1.0, 0.4, 1.0, g, dist="uniform")
+    e = torch.randn(a.shape, generator=g)
+    z, v = (1 - t)[:, None, None] * e + t[:, None, None] * a, a - e
+
+    def target(pol, dtype, dudt):
+        cond = pol._prepare({"state": state.to(dtype)})
+        return meanflow_target(pol._flow_net, z.to(dtype), t.to(dtype), r.to(dtype), v.to(dtype), dudt=dudt,
+                               cond=cond)[1].double()
+
+    ref = target(_expert_policy(torch.float64), torch.float64, "jvp")
+    fd, jvp = target(policy, torch.float32, "finite_difference"), target(policy, torch.float32, "jvp")
+    rms = lambda x: x.square().mean().sqrt().item()                                      # noqa: E731
+    assert rms(fd - ref) < 1e-3 * rms(ref), (rms(fd - ref), rms(ref))
+    assert rms(jvp - ref) < 1e-4 * rms(ref)
+    # The du/dt term moves the target by far more than the tolerance: the test has teeth.
+    assert rms(v.double() - ref) > 100 * 1e-3 * rms(ref)
+
+
+def test_finite_difference_loss_keeps_the_stop_gradient(gaussian):
+    """The loss with du/dt by central difference equals a reference with the target detached;
+    it also equals the JVP loss up to the difference's error."""
+    a = gaussian.sample(64, torch.Generator().manual_seed(3))
+    net = nn.Sequential(nn.Linear(5, 32), nn.Tanh(), nn.Linear(32, 3)).double()
+
+    def u(x, t, r):
+        return net(torch.cat([x, t.reshape(-1, 1, 1), r.reshape(-1, 1, 1)], -1))
+
+    params = list(net.parameters())
+    loss = meanflow_loss(u, a, torch.Generator().manual_seed(7), ratio_r_neq_t=0.25, dudt="finite_difference")
+    grads = torch.autograd.grad(loss, params)
+    loss_jvp = meanflow_loss(u, a, torch.Generator().manual_seed(7), ratio_r_neq_t=0.25, dudt="jvp")
+    grads_jvp = torch.autograd.grad(loss_jvp, params)
+    torch.testing.assert_close(loss, loss_jvp, rtol=1e-9, atol=0)
+    for x, y in zip(grads, grads_jvp):
+        torch.testing.assert_close(x, y, rtol=1e-7, atol=1e-10)
+
+    g = torch.Generator().manual_seed(7)
+    t, r, n = sample_meanflow_times(64, 0.25, 0.4, 1.0, g)
+    e = torch.randn(a.shape, generator=g, dtype=a.dtype)
+    z = (1 - t).reshape(-1, 1, 1) * e + t.reshape(-1, 1, 1) * a
+    v = a - e
+    out = u(z, t, r)
+    dudt = torch.func.jvp(u, (z, t, r), (v, torch.ones_like(t), torch.zeros_like(r)))[1]
+    target = v - (t - r).reshape(-1, 1, 1) * dudt
+    err_nosg = (out - target).square().mean((1, 2))
+    bad = torch.autograd.grad(((err_nosg.detach() + 1e-3).pow(-0.5) * err_nosg).mean(), params)
+    assert max((x - y).abs().max() for x, y in zip(bad, grads)) > 1e-4
+
+
+def test_meanflow_dudt_is_validated():
+    a = torch.randn(8, 16, 4)
+    with pytest.raises(ValueError, match=r"meanflow_dudt: expected one of \['jvp', 'finite_difference'\], got 'fd'"):
+        meanflow_loss(lambda x, t, r: x, a, dudt="fd")
+    with pytest.raises(ValueError, match=r"meanflow_dudt: expected one of .*got 'exact'"):
+        DecoderConfig(decoder_type="mean_flow", meanflow_dudt="exact")
+    with pytest.raises(ValueError, match="meanflow_dudt: 'finite_difference' needs float32 or float64 inputs, got torch.bfloat16"):
+        meanflow_target(lambda x, t, r: x, a.bfloat16(), torch.rand(8).bfloat16(), torch.ones(8).bfloat16(),
+                        a.bfloat16(), dudt="finite_difference")
+    with torch.autocast("cpu", dtype=torch.bfloat16), pytest.raises(ValueError, match="autocast"):
+        meanflow_loss(lambda x, t, r: x, a, dudt="finite_difference")
+    bf16 = _expert_policy(meanflow_dudt="finite_difference").to(torch.bfloat16)
+    batch = {"state": torch.randn(8, 7), "actions": a}
+    with pytest.raises(ValueError, match="meanflow_dudt: 'finite_difference' needs float32 or float64 weights, "
+                                         "got torch.bfloat16"):
+        bf16.compute_loss(batch)
+    bf16.config.meanflow_dudt = "jvp"
+    assert torch.isfinite(bf16.compute_loss(batch).loss)
+
+
+def test_policy_trains_with_the_configured_dudt():
+    """`DecoderConfig.meanflow_dudt` reaches the loss: same weights and noise, both methods give the
+    same loss up to the difference's error, and the finite difference calls no JVP."""
+    batch = {"state": torch.randn(32, 7), "actions": torch.randn(32, 16, 4)}
+    out = {}
+    for dudt in ("jvp", "finite_difference"):
+        policy = _expert_policy(meanflow_dudt=dudt)
+        calls = []
+        real_jvp = torch.func.jvp
+        torch.func.jvp = lambda *a, **k: calls.append(1) or real_jvp(*a, **k)
+        try:
+            out[dudt] = policy.compute_loss(batch, torch.Generator().manual_seed(0)).loss
+        finally:
+            torch.func.jvp = real_jvp
+        assert bool(calls) == (dudt == "jvp")
+    torch.testing.assert_close(out["finite_difference"], out["jvp"], rtol=1e-3, atol=0)

@@ -21,6 +21,7 @@ FLOW_PREDICTIONS = ("velocity", "sample")
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
 MEANFLOW_VELOCITIES = ("boundary", "identity")
+MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
@@ -30,7 +31,7 @@ CONFIG_FORMAT_VERSION = 3
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
-    3: {"rtc_guidance_weight": 5.0, "rtc_schedule": "exp"},
+    3: {"rtc_guidance_weight": 5.0, "rtc_schedule": "exp", "meanflow_dudt": "jvp"},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -80,6 +81,11 @@ class DecoderConfig:
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
+    # How training gets du/dt for the r ≠ t rows: "jvp" (exact, forward-mode AD; any dtype) or
+    # "finite_difference" (central difference in one no-grad call; float32/float64 weights only).
+    # A step costs 1.45–1.55× a flow-matching step with the JVP, 1.20–1.23× with the difference,
+    # but the difference trained worse on 2 of 3 seeds (docs/benchmarks/meanflow_cost.md).
+    meanflow_dudt: str = "jvp"
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
@@ -129,6 +135,7 @@ class DecoderConfig:
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
+        _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         if self.flow_sde_t_min is not None:
             _finite("flow_sde_t_min", self.flow_sde_t_min)
             if not 0.0 < self.flow_sde_t_min <= 1.0:

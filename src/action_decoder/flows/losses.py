@@ -13,24 +13,26 @@ from typing import Any, Mapping, Optional
 import torch
 from torch import Tensor
 
+from ..config import MEANFLOW_DUDT
 from .paths import AvgVelocity, Velocity, check_chunk, checked_call, interpolate
 
 
-def _rows(obj: Any, rows: slice) -> Any:
+def _map_tensors(obj: Any, fn) -> Any:
+    """`fn` applied to every tensor in `obj` (a tensor, None, a dataclass, tuple or list of those)."""
     if obj is None:
         return None
     if isinstance(obj, Tensor):
-        return obj[rows]
+        return fn(obj)
     if dataclasses.is_dataclass(obj):
-        return dataclasses.replace(obj, **{f.name: _rows(getattr(obj, f.name), rows)
+        return dataclasses.replace(obj, **{f.name: _map_tensors(getattr(obj, f.name), fn)
                                            for f in dataclasses.fields(obj) if f.init})
     if isinstance(obj, (tuple, list)):
-        return type(obj)(_rows(o, rows) for o in obj)
+        return type(obj)(_map_tensors(o, fn) for o in obj)
     return obj
 
 
 def slice_cond(cond: Optional[Mapping[str, Any]], rows: slice) -> dict:
-    return {k: _rows(v, rows) for k, v in (cond or {}).items()}
+    return {k: _map_tensors(v, lambda x: x[rows]) for k, v in (cond or {}).items()}
 
 
 def _bcast(t: Tensor, like: Tensor) -> Tensor:
@@ -49,17 +51,65 @@ def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[
     return (v - (a - e)).square().mean()
 
 
-def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, v: Tensor):
+# Central-difference step along (v, 1, 0) in float32. The time embedding's shortest period
+# (4e-3) makes u vary fast in t: on the CLI's network (random and trained) the error of
+# (t − r)·du/dt is smallest near this step, rms 3e-3–6e-3 against a target of rms 5–9
+# (docs/benchmarks/meanflow_cost.md); 1e-4 truncates 4–6× worse, 3e-6 rounds 8–9× worse.
+FD_STEP_FLOAT32 = 3e-5
+
+
+def fd_step(dtype: torch.dtype) -> float:
+    """The central-difference step for `dtype`: the float32 step scaled by the cube root of the
+    machine-epsilon ratio (the optimum of truncation ε² against rounding eps/ε)."""
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"meanflow_dudt: 'finite_difference' needs float32 or float64 inputs, got {dtype} "
+                         f"(use 'jvp' in lower precision)")
+    ratio = torch.finfo(dtype).eps / torch.finfo(torch.float32).eps
+    return FD_STEP_FLOAT32 * ratio ** (1 / 3)
+
+
+def dudt_finite_difference(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, v: Tensor,
+                           cond: Optional[Mapping[str, Any]] = None) -> Tensor:
+    """du/dt along the tangent (v, 1, 0) on (z, t, r) by a central difference, without grad.
+
+    One call over 2n rows [z + h·v, z − h·v] at times t ± h, r fixed, h = `fd_step(z.dtype)`;
+    returns (u₊ − u₋)/(2h) [n, H, D] in v's dtype. The network must compute in float32 or
+    float64: under autocast the difference would be rounding noise, so that raises.
+    """
+    if torch.is_autocast_enabled(z.device.type):
+        raise ValueError("meanflow_dudt: 'finite_difference' needs the network in float32 or float64, "
+                         "got autocast enabled (use 'jvp' with autocast)")
+    h = fd_step(z.dtype)
+    twice = {k: _map_tensors(c, lambda x: torch.cat([x, x])) for k, c in (cond or {}).items()}
+    step = h * v.to(z.dtype)
+    with torch.no_grad():
+        out = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **twice), torch.cat([z + step, z - step]),
+                           torch.cat([t + h, t - h]), torch.cat([r, r]), dtype=v.dtype, name="avg_velocity")
+    plus, minus = out.chunk(2)                                            # [n, H, D] each
+    return (plus - minus) / (2 * h)
+
+
+def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, v: Tensor,
+                    dudt: str = "jvp", cond: Optional[Mapping[str, Any]] = None):
     """(u, target) with u = u_θ(z, t, r) and target = sg(v − (t − r)·du/dt).
 
-    du/dt is the total derivative along the path: JVP with tangent (v, 1, 0) on (z, t, r).
+    du/dt is the total derivative along the path, with tangent (v, 1, 0) on (z, t, r):
+    "jvp" computes it exactly with `torch.func.jvp` (u comes out of the same pass);
+    "finite_difference" by `dudt_finite_difference`, with u from a plain call. `cond`: the
+    callable's batch-aligned keyword arguments (module docstring).
     The target is detached (the MeanFlow paper's stop-gradient): the loss must not
-    backpropagate through the JVP.
+    backpropagate through du/dt.
     """
-    u, dudt = torch.func.jvp(avg_velocity, (z, t, r), (v.to(z.dtype), torch.ones_like(t),
-                                                        torch.zeros_like(r)))
+    if dudt not in MEANFLOW_DUDT:
+        raise ValueError(f"meanflow_dudt: expected one of {list(MEANFLOW_DUDT)}, got {dudt!r}")
     dtype = v.dtype
-    target = v - _bcast(t - r, v).to(dtype) * dudt.to(dtype)
+    bound = lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {}))                 # noqa: E731
+    if dudt == "jvp":
+        u, d = torch.func.jvp(bound, (z, t, r), (v.to(z.dtype), torch.ones_like(t), torch.zeros_like(r)))
+    else:
+        u = checked_call(bound, z, t, r, dtype=dtype, name="avg_velocity")
+        d = dudt_finite_difference(avg_velocity, z, t, r, v, cond)
+    target = v - _bcast(t - r, v).to(dtype) * d.to(dtype)
     return u.to(dtype), target.detach()
 
 
@@ -108,13 +158,17 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
-                  one_step_share: float = 0.0) -> Tensor:
+                  one_step_share: float = 0.0, dudt: str = "jvp") -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
     weight w = sg(1 / (error + c)^p); loss = mean(w·error). Rows with r = t have target v
     and are called without JVP (free speed). p = 0.5 is MP1's choice; on Meta-World push
     (10 demos, 1500 steps, 1-step sampling) p = 0.5 reached 100 % success, p = 1 15 %, p = 0 0 %.
+
+    `dudt` ("jvp" | "finite_difference", see `meanflow_target`): with "finite_difference" u
+    comes from one plain call over all B rows and du/dt from one no-grad call over the 2n
+    shifted copies of the r ≠ t rows (`dudt_finite_difference`).
 
     Why the per-element mean and not the paper's ‖Δ‖² (sum over H×D): the mean is the sum with
     c·H·D and the loss scaled by (H·D)^(p−1), i.e. c 64× larger relative to the error at H = 16,
@@ -123,6 +177,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     reached 62 % against 42 % for the sum, so the mean stays the default.
     """
     check_chunk(actions, "actions")
+    if dudt not in MEANFLOW_DUDT:
+        raise ValueError(f"meanflow_dudt: expected one of {list(MEANFLOW_DUDT)}, got {dudt!r}")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
@@ -130,13 +186,19 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e
     deltas = []
-    if n > 0:
-        sub = slice(0, n)
-        c = slice_cond(cond, sub)
-        u, target = meanflow_target(lambda x, tt, rr: avg_velocity(x, tt, rr, **c), z[sub], t[sub],
-                                    r[sub], v[sub])
+    if dudt == "finite_difference":
+        u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
+                         name="avg_velocity")                                # [B, H, D], r = t on rows n:
+        target = v
+        if n > 0:
+            d = dudt_finite_difference(avg_velocity, z[:n], t[:n], r[:n], v[:n], slice_cond(cond, slice(0, n)))
+            target = torch.cat([v[:n] - _bcast(t[:n] - r[:n], v) * d, v[n:]])
         deltas.append(u - target)
-    if n < B:
+    elif n > 0:
+        sub = slice(0, n)
+        u, target = meanflow_target(avg_velocity, z[sub], t[sub], r[sub], v[sub], cond=slice_cond(cond, sub))
+        deltas.append(u - target)
+    if n < B and dudt == "jvp":
         sub = slice(n, B)
         c = slice_cond(cond, sub)
         u = checked_call(lambda x, tt: avg_velocity(x, tt, tt, **c), z[sub], t[sub], dtype=a.dtype,

@@ -1,0 +1,260 @@
+"""A MeanFlow train step against a flow-matching one, per way of getting du/dt (issue 28).
+
+    python -m benchmarks.train_step_cost                 # timing table (paired rounds), both sizes
+    python -m benchmarks.train_step_cost --quality       # + the synthetic two-route task, jvp vs fd
+    python -m benchmarks.train_step_cost --precision-only [--checkpoint DIR]   # du/dt error vs step
+
+Timing: one AdamW step (zero_grad, loss, backward, step) of the CLI's recipe: batch 128, MeanFlow
+with r ≠ t on 0.25 of the rows, uniform times, p = 0.5, the clean-chunk head; flow matching with
+the velocity head. Each round runs every (variant, FM) pair back to back, pairs in a rotated order
+and the two timers of a pair in alternating order (`timing.rounds`); the ratio is taken per round,
+then the median and the quartiles over rounds are reported. Variants:
+
+- "jvp": `meanflow_dudt="jvp"` (torch.func.jvp on the r ≠ t rows, a plain call on the others).
+- "finite_difference": `meanflow_dudt="finite_difference"` (u in one call over B rows, du/dt by
+  a central difference in one no-grad call over 2n rows).
+- "fd, one call (B + 2n rows)": the same central difference with its 2n rows in the grad call
+  (this module's own loss, built from the library's pieces), to compare with the second call.
+- "forward difference (n rows)": (u(z + h·v, t + h, r) − u)/h with h = 1e-5 in a no-grad call
+  over n rows (this module's own loss); it reuses u but is ~10× less accurate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import functools
+import importlib.util
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+
+from action_decoder import ActionDecoderPolicy, DecoderConfig  # noqa: E402
+from action_decoder.flows import losses  # noqa: E402
+from action_decoder.flows.paths import interpolate  # noqa: E402
+
+from .timing import Clock, rounds  # noqa: E402
+
+SIZES = {   # name: (hidden, layers, heads, kv heads)
+    "CLI default (hidden 96, 3 layers)": (96, 3, 4, 2),            # TrainConfig's network
+    "large (hidden 128, 4 layers)": (128, 4, 4, 2),                # suite.py's "large", DecoderConfig's default
+}
+BATCH = 128                                                        # TrainConfig.batch_size
+FORWARD_STEP = 1e-5
+
+
+def _policy(decoder: str, size: tuple, **kw) -> ActionDecoderPolicy:
+    hidden, layers, heads, kv = size
+    torch.manual_seed(0)
+    cfg = DecoderConfig(decoder_type=decoder, hidden_size=hidden, num_hidden_layers=layers, num_attention_heads=heads,
+                        num_key_value_heads=kv, state_dim=39, action_dim=4, action_chunk_size=16,
+                        flow_prediction="sample" if decoder == "mean_flow" else "velocity", **kw)
+    return ActionDecoderPolicy(cfg).train()
+
+
+def _local_loss(policy: ActionDecoderPolicy, batch: dict, how: str) -> torch.Tensor:
+    """The library's MeanFlow loss with du/dt computed `how` ("one_call" or "forward")."""
+    cfg = policy.config
+    cond = policy._prepare(batch)
+    a = policy.normalizers["actions"].normalize(batch["actions"].float())            # [B, H, D]
+    B = a.shape[0]
+    t, r, n = losses.sample_meanflow_times(B, cfg.meanflow_ratio_r_neq_t, cfg.meanflow_time_mean,
+                                           cfg.meanflow_time_std, dist=cfg.meanflow_time_dist)
+    e = torch.randn(a.shape)
+    z, v = interpolate(e, a, t), a - e
+    net, head = policy._flow_net, slice(0, n)
+    if how == "one_call":
+        h = losses.fd_step(z.dtype)
+        rows = lambda x, y, w: torch.cat([x, y, w])                                        # noqa: E731
+        c3 = {k: losses._map_tensors(c, lambda x: rows(x, x[head], x[head])) for k, c in cond.items()}
+        out = net(rows(z, z[head] + h * v[head], z[head] - h * v[head]), rows(t, t[head] + h, t[head] - h),
+                  rows(r, r[head], r[head]), **c3)                                          # [B + 2n, H, D]
+        u, dudt = out[:B], ((out[B:B + n] - out[B + n:]) / (2 * h)).detach()
+    else:
+        u = net(z, t, r, **cond)
+        with torch.no_grad():
+            dudt = (net(z[head] + FORWARD_STEP * v[head], t[head] + FORWARD_STEP, r[head],
+                        **losses.slice_cond(cond, head)) - u[head]) / FORWARD_STEP
+    target = torch.cat([v[head] - (t[head] - r[head]).reshape(-1, 1, 1) * dudt, v[n:]])
+    error = (u - target).square().mean((1, 2))
+    return ((error.detach() + cfg.meanflow_adaptive_c).pow(-cfg.meanflow_adaptive_p) * error).mean()
+
+
+def _step(policy: ActionDecoderPolicy, batch: dict, loss: Callable) -> Callable[[], None]:
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        loss(policy, batch).backward()
+        opt.step()
+    step()                                                                     # the optimizer state
+    return step
+
+
+def variants(size: tuple, batch: dict) -> Dict[str, Callable[[], None]]:
+    lib = lambda p, b: p.compute_loss(b).loss                                  # noqa: E731
+    return {
+        "FM": _step(_policy("flow_matching", size), batch, lib),
+        "jvp": _step(_policy("mean_flow", size, meanflow_dudt="jvp"), batch, lib),
+        "finite_difference": _step(_policy("mean_flow", size, meanflow_dudt="finite_difference"), batch, lib),
+        "fd, one call (B + 2n rows)": _step(_policy("mean_flow", size), batch,
+                                            functools.partial(_local_loss, how="one_call")),
+        "forward difference (n rows)": _step(_policy("mean_flow", size), batch,
+                                             functools.partial(_local_loss, how="forward")),
+    }
+
+
+def _quantile(xs: List[float], q: float) -> float:
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, int(round(q * (len(xs) - 1))))]
+
+
+def time_size(name: str, size: tuple, reps: int, warmup: int) -> dict:
+    g = torch.Generator().manual_seed(3)
+    batch = {"state": torch.randn(BATCH, 39, generator=g), "actions": torch.randn(BATCH, 16, 4, generator=g)}
+    steps = variants(size, batch)
+    clock = Clock(torch.device("cpu"))
+    fm = steps["FM"]
+    timers = {k: [lambda s=s: clock(s), lambda: clock(fm)] for k, s in steps.items() if k != "FM"}
+    raw = rounds(clock, timers, reps, warmup)
+    fm_ms = [s[1] * 1e3 for k in raw for s in raw[k]]
+    rows = [{"variant": "FM", "step_ms": _quantile(fm_ms, 0.5), "vs_fm": 1.0, "q25": 1.0, "q75": 1.0}]
+    for k, samples in raw.items():
+        ratio = [s[0] / s[1] for s in samples]
+        rows.append({"variant": k, "step_ms": _quantile([s[0] * 1e3 for s in samples], 0.5),
+                     "vs_fm": _quantile(ratio, 0.5), "q25": _quantile(ratio, 0.25), "q75": _quantile(ratio, 0.75),
+                     "min": min(ratio), "max": max(ratio)})
+    return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows}
+
+
+def quality(seeds: List[int], steps: int, methods=("jvp", "finite_difference")) -> List[dict]:
+    """scripts/meanflow_norm_ablation.py's synthetic two-route task, jvp vs finite difference."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / "meanflow_norm_ablation.py"
+    spec = importlib.util.spec_from_file_location("meanflow_norm_ablation", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = []
+    for dudt in methods:
+        mod.DecoderConfig = functools.partial(DecoderConfig, meanflow_dudt=dudt)
+        for seed in seeds:
+            res = {"dudt": dudt, **mod.synthetic(seed, steps, 128)}
+            print(json.dumps(res), flush=True)
+            out.append(res)
+    return out
+
+
+def precision(checkpoint: Optional[str] = None, batch: int = 256) -> dict:
+    """Error of the float32 target v − (t − r)·du/dt per way of getting du/dt, against the float64
+    JVP, on the CLI's network (random weights, clean-chunk head) or a saved MeanFlow checkpoint;
+    random chunks, states N(0, 0.3²) (checkpoint) or N(0, 1), times uniform with r ≠ t on all rows."""
+    torch.manual_seed(0)
+    if checkpoint:
+        policy = ActionDecoderPolicy.from_pretrained(checkpoint)
+    else:
+        policy = _policy("mean_flow", next(iter(SIZES.values())))
+    policy.eval()
+    g = torch.Generator().manual_seed(1)
+    state = torch.randn(batch, policy.config.state_dim, generator=g) * (0.3 if checkpoint else 1.0)
+    a = 0.5 * torch.randn(batch, 16, policy.config.action_dim, generator=g)
+    t, r, _ = losses.sample_meanflow_times(batch, 1.0, 0.4, 1.0, g, dist="uniform")
+    e = torch.randn(a.shape, generator=g)
+    z, v = interpolate(e, a, t), a - e
+    p64 = copy.deepcopy(policy).double()
+
+    def bound(pol, dtype):
+        cond = pol._prepare({"state": state.to(dtype)})
+        return lambda x, tt, rr: pol._flow_net(x, tt, rr, **cond)
+
+    f32, f64 = bound(policy, torch.float32), bound(p64, torch.float64)
+    gap = (t - r).double()[:, None, None]
+    with torch.no_grad():
+        ref = torch.func.jvp(f64, (z.double(), t.double(), r.double()),
+                             (v.double(), torch.ones_like(t).double(), torch.zeros_like(r).double()))[1]
+        target = v.double() - gap * ref
+        rms = lambda x: x.square().mean().sqrt().item()                                  # noqa: E731
+        err = lambda d: {"rms": rms(gap * (d.double() - ref)), "max": (gap * (d.double() - ref)).abs().max().item()}  # noqa: E731
+        out = {"network": checkpoint or "CLI default, random weights", "target_rms": rms(target),
+               "dudt_rms": rms(ref), "dudt_max": ref.abs().max().item(),
+               "jvp_float32": err(torch.func.jvp(f32, (z, t, r), (v, torch.ones_like(t), torch.zeros_like(r)))[1]),
+               "steps": []}
+        for h in (1e-4, 3e-5, 1e-5, 3e-6):
+            central = (f32(z + h * v, t + h, r) - f32(z - h * v, t - h, r)) / (2 * h)
+            forward = (f32(z + h * v, t + h, r) - f32(z, t, r)) / h
+            out["steps"].append({"h": h, "central": err(central), "forward": err(forward)})
+    return out
+
+
+def precision_table(prec: List[dict]) -> str:
+    lines = ["| network | target rms | du/dt | step h | central: rms / max error | forward: rms / max error |",
+             "|---|---|---|---|---|---|"]
+    for p in prec:
+        j = p["jvp_float32"]
+        lines.append(f"| {p['network']} | {p['target_rms']:.2f} | JVP in float32 | – | {j['rms']:.1e} / {j['max']:.1e} | |")
+        for s in p["steps"]:
+            c, f = s["central"], s["forward"]
+            lines.append(f"| | | difference | {s['h']:.0e} | {c['rms']:.1e} / {c['max']:.1e} | "
+                         f"{f['rms']:.1e} / {f['max']:.1e} |")
+    return "\n".join(lines)
+
+
+def table(results: List[dict]) -> str:
+    lines = ["| network (batch 128) | variant | step ms (median) | ÷ FM step (median) | quartiles | min–max |",
+             "|---|---|---|---|---|---|"]
+    for res in results:
+        for row in res["rows"]:
+            spread = "" if row["variant"] == "FM" else f"{row['q25']:.2f}–{row['q75']:.2f}"
+            full = "" if row["variant"] == "FM" else f"{row['min']:.2f}–{row['max']:.2f}"
+            lines.append(f"| {res['size']} | {row['variant']} | {row['step_ms']:.0f} | {row['vs_fm']:.2f} | "
+                         f"{spread} | {full} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.train_step_cost", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--reps", type=int, default=20, help="timed rounds per network size")
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--quality", action="store_true", help="also train the synthetic two-route task")
+    p.add_argument("--quality-steps", type=int, default=1500)
+    p.add_argument("--seeds", default="0", help="comma-separated seeds of the quality runs")
+    p.add_argument("--quality-only", action="store_true", help="only the quality runs")
+    p.add_argument("--dudt", default="jvp,finite_difference", help="comma-separated methods of the quality runs")
+    p.add_argument("--precision-only", action="store_true", help="only the du/dt error table (seconds)")
+    p.add_argument("--checkpoint", action="append", default=[],
+                   help="a MeanFlow checkpoint whose du/dt error to measure too (repeatable)")
+    p.add_argument("--out", default=None, help="JSON results (default: docs/benchmarks/meanflow_cost.json; "
+                   "meanflow_cost_precision.json / _quality.json with --precision-only / --quality-only)")
+    a = p.parse_args(argv)
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    results = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+               "machine": f"{os.cpu_count()}-core CPU, torch {torch.__version__}, {torch.get_num_threads()} thread(s)",
+               "python": platform.python_version(), "command": "python -m benchmarks.train_step_cost "
+               + " ".join(sys.argv[1:] if argv is None else argv), "timing": []}
+    if not a.quality_only:
+        results["precision"] = [precision(c) for c in [None, *a.checkpoint]]
+        print(precision_table(results["precision"]), flush=True)
+    if not (a.precision_only or a.quality_only):
+        for name, size in SIZES.items():
+            print(f"[train_step_cost] {name}, batch {BATCH}, {a.reps} rounds", flush=True)
+            results["timing"].append(time_size(name, size, a.reps, a.warmup))
+        print(table(results["timing"]), flush=True)
+    if a.quality or a.quality_only:
+        results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps, a.dudt.split(","))
+    part = "_precision" if a.precision_only else "_quality" if a.quality_only else ""
+    a.out = a.out or f"docs/benchmarks/meanflow_cost{part}.json"
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(results, indent=1) + "\n")
+    print(f"[train_step_cost] wrote {a.out}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
