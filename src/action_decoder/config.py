@@ -24,9 +24,9 @@ MEANFLOW_VELOCITIES = ("boundary", "identity")
 MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
-# Version of the config.json layout that `to_json` writes and `from_json` reads. Version 2
-# carries every field: a checkpoint is read back as it was trained, never completed with
-# defaults (files without a version, written before it existed, are version 1).
+# Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
+# up carry every field of their version: a checkpoint is read back as it was trained, never
+# completed with today's defaults (files without a version are version 1, no longer read).
 CONFIG_FORMAT_VERSION = 3
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
