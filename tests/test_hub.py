@@ -16,6 +16,7 @@ import torch
 from huggingface_hub import ModelCard, PyTorchModelHubMixin
 
 from action_decoder import ActionDecoderPolicy, DecoderConfig
+from action_decoder.config import CONFIG_FORMAT_VERSION
 from action_decoder.evaluate import EvalConfig, run_eval
 from action_decoder.model_card import hub_dataset_id, read_results
 from action_decoder.run_dir import load_state, save_state
@@ -148,7 +149,7 @@ def test_the_layout_is_what_pytorch_model_hub_mixin_loads(tmp_path):
     policy = tiny_policy()
     assert isinstance(policy, PyTorchModelHubMixin)
     policy.save_pretrained(tmp_path / "c")
-    assert json.loads((tmp_path / "c" / "config.json").read_text())["format_version"] == 2
+    assert json.loads((tmp_path / "c" / "config.json").read_text())["format_version"] == CONFIG_FORMAT_VERSION
     # huggingface_hub's own safetensors loader, strict: every tensor, named as the module names it.
     fresh = PyTorchModelHubMixin._load_as_safetensor(tiny_policy(seed=1), str(tmp_path / "c" / "model.safetensors"),
                                                      "cpu", True)

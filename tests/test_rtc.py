@@ -1,6 +1,5 @@
 """Real-time chunking: guidance math on analytic flows, the policy's contract, asynchronous evaluation."""
 
-import functools
 import importlib
 import json
 import math
@@ -228,12 +227,11 @@ def test_eval_delay_rtc_runs_end_to_end_and_records_it(tmp_path, monkeypatch, ca
                         num_hidden_layers=1, n_action_steps=4, num_inference_timesteps=1,
                         state_layout="metaworld", extra={"tasks": ["reach-v3"]})
     ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "ckpt")
-    monkeypatch.setattr("action_decoder.envs.evaluate", functools.partial(evaluate, max_steps=24))
     monkeypatch.chdir(tmp_path)
-    args = ["eval", "--checkpoint", str(tmp_path / "ckpt"), "--episodes", "2", "--num-envs", "2"]
+    args = ["eval", "--checkpoint", str(tmp_path / "ckpt"), "--episodes", "2", "--num-envs", "2", "--max-steps", "24"]
     assert cli.main(args + ["--delay", "2", "--rtc"]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1].startswith("success_rate=")
-    summary = json.loads((tmp_path / "ckpt" / "eval_ode_k1_n4_d2_rtc_seed0.json").read_text())
+    summary = json.loads((tmp_path / "ckpt" / "eval_ode_k1_n4_d2_rtc_seed0_t24.json").read_text())
     assert summary["delay"] == 2 and summary["rtc"] is True and summary["boundary_jerk"] > 0
     assert summary["results"][0]["boundaries"] == 2 * 10    # switches at 6, 10, .., 22: stencils centred k − 1, k
     assert cli.main(args + ["--delay", "5"]) == 2
