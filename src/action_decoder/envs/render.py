@@ -43,7 +43,7 @@ with warnings.catch_warnings(record=True) as caught:
         import mujoco
         renderer = mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 16, 16)
         renderer.render()
-        renderer.close()
+        getattr(renderer, "close", lambda: None)()      # mujoco < 3.1 has no close
         error = None
     except Exception as err:
         error = f"{type(err).__name__}: {err}".splitlines()[0]
@@ -51,6 +51,20 @@ if error:
     print(([str(w.message) for w in caught] + [error])[0], flush=True)
 os._exit(1 if error else 0)   # no interpreter teardown: a half-made GL context prints tracebacks there
 """
+
+
+def close_renderer(renderer) -> None:
+    """Free a `mujoco.Renderer`'s GL contexts now (one left to interpreter exit prints an EGL
+    traceback there). mujoco >= 3.1 has `Renderer.close`; older releases are freed by their parts."""
+    close = getattr(renderer, "close", None)
+    if close is not None:
+        close()
+        return
+    for part in ("_mjr_context", "_gl_context"):
+        context = getattr(renderer, part, None)
+        if context is not None:
+            context.free()
+            setattr(renderer, part, None)
 
 
 def choose_backend(environ=os.environ, find_library=ctypes.util.find_library) -> str:
@@ -141,7 +155,7 @@ class EpisodeCamera:
     def close(self) -> None:
         """Free the GL contexts (one left to interpreter exit prints an EGL traceback there)."""
         for _, renderer, _ in self._renderers.values():
-            renderer.close()
+            close_renderer(renderer)
         self._renderers.clear()
 
     def write(self, successes: list[bool], layout: str, fps: float, directory: Path, prefix: str) -> list[Path]:
