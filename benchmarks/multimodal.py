@@ -7,7 +7,8 @@
 (a) synthetic: state s ~ N(0, I₄); the chunk [16, 4] is one of two routes
     0.5·s·h ± sin(πh)·(1, −0.6, 0.8, 0.4), h ∈ [0, 1], 50/50 (mode separation ≈ 1.0 RMS).
 (b) obstacle routes: a 2-D point mass passes a disc obstacle above or below (`envs.obstacle_routes`),
-    the scripted expert choosing 50/50 per episode; closed loop, re-planning every 4 actions.
+    start, obstacle and goal on one axis, the scripted expert choosing 50/50 per episode; closed loop,
+    re-planning every 8 actions.
 Each decoder is trained once per task through `ActionDecoderPolicy` (hidden 64, 2 layers, batch 128,
 AdamW 1e-3, warm-up + cosine, weight EMA as `train.py`) and sampled at each column's K.
 """

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from action_decoder.envs.obstacle_routes import (MAX_STEPS, expert_action, expert_dataset, expert_episode,
-                                                  rollout)
+from action_decoder.envs.obstacle_routes import (MAX_STEPS, N_ACTION_STEPS, SPEED, ObstacleRoutesEnv,
+                                                  expert_action, expert_dataset, expert_episode, rollout)
 from action_decoder.flows.losses import meanflow_loss, sample_meanflow_times
 from benchmarks import multimodal as mm
 
@@ -67,20 +67,51 @@ def test_expert_succeeds_by_both_routes(side):
         assert ok and obs.shape[1:] == (6,) and chunks.shape == (len(obs), 16, 2) and len(obs) < MAX_STEPS
         res = rollout(lambda o: np.stack([expert_action(o, side)] * 16), seed, n_action_steps=1)
         assert res == {"success": True, "collided": False, "route": side}
+        # closed loop as the benchmark runs it: a 16-action chunk from each frame, N_ACTION_STEPS executed
+        chunk = lambda o: expert_episode_from(o, side)                          # noqa: E731
+        assert rollout(chunk, seed) == {"success": True, "collided": False, "route": side}
 
 
-def test_averaging_the_routes_collides():
+def expert_episode_from(obs, side, horizon=16):
+    """The expert's next `horizon` actions from observation `obs`, simulated open loop."""
+    obs, out = obs.copy(), []
+    for _ in range(horizon):
+        a = expert_action(obs, side)
+        out.append(a)
+        obs[:2] = obs[:2] + SPEED * np.clip(a, -1, 1)
+    return np.stack(out)
+
+
+def test_layout_is_symmetric_so_both_routes_start_from_the_same_state():
+    for seed in range(10):
+        up, up_chunks, _ = expert_episode(seed, 1)
+        down, down_chunks, _ = expert_episode(seed, -1)
+        assert np.array_equal(up[0], down[0]) and np.all(up[0][1::2] == 0)    # every y on the axis
+        # the two first chunks are mirror images: same x, opposite y, clearly apart
+        assert np.allclose(up_chunks[0, :, 0], down_chunks[0, :, 0])
+        assert np.allclose(up_chunks[0, :, 1], -down_chunks[0, :, 1]) and up_chunks[0, :4, 1].min() > 0.4
+
+
+def test_averaging_the_routes_collides_within_the_first_chunk():
     avg = lambda o: np.stack([(expert_action(o, 1) + expert_action(o, -1)) / 2] * 16)   # noqa: E731
-    res = [rollout(avg, seed) for seed in range(10)]
-    assert not any(r["success"] for r in res) and all(r["collided"] for r in res)
+    for seed in range(20):
+        env = ObstacleRoutesEnv()
+        obs, _ = env.reset(seed=seed)
+        for step in range(1, N_ACTION_STEPS + 1):
+            obs, _, done, _, info = env.step(avg(obs)[0])
+            if done:
+                break
+        assert info["collided"] and step <= N_ACTION_STEPS
+        assert rollout(avg, seed) == {"success": False, "collided": True, "route": None}
 
 
 def test_expert_dataset_is_balanced_and_bimodal_at_the_start():
     states, chunks = expert_dataset(40, seed=0)
-    start = states[:, 0] == -1.0                                               # first frame of each episode
+    start = (states[:, 1] == 0) & (states[:, 0] < -0.5)                        # first frame of each episode
     assert int(start.sum()) == 40
     up = chunks[start][:, :8, 1].mean(1) > 0                                   # heading above the obstacle
     assert 10 <= int(up.sum()) <= 30
+    assert torch.all(chunks[start][:, :8, 1].abs().mean(1) > 0.4)             # every demo commits at once
 
 
 def test_one_step_rows_take_the_whole_interval():

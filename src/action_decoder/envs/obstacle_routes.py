@@ -1,10 +1,13 @@
-"""A 2-D point mass that must pass a disc obstacle on the left or the right to reach a goal.
+"""A 2-D point mass that must pass a disc obstacle above or below to reach a goal.
 
 A closed-loop task whose demonstrations are genuinely bimodal: the scripted expert picks one side
-per episode, 50/50, and the state does not say which. Averaging the two routes steers straight
-into the obstacle. Observation `[6]`: position, goal, obstacle centre; action `[2]`: a velocity
-command in [−1, 1]² that moves the point by `SPEED` per step. Success: within `GOAL_TOL` of the
-goal without ever entering the obstacle (radius `RADIUS`); a collision ends the episode.
+per episode, 50/50, and the state does not say which. Start, obstacle and goal lie on the x axis,
+so the layout is mirror-symmetric and nothing in the state breaks the tie; the obstacle sits close
+to the start, so the side is decided within the first executed chunk (`N_ACTION_STEPS` actions),
+and averaging the two routes drives straight into it. Observation `[6]`: position, goal, obstacle
+centre; action `[2]`: a velocity command in [−1, 1]² that moves the point by `SPEED` per step.
+Success: within `GOAL_TOL` of the goal without ever entering the obstacle (radius `RADIUS`);
+a collision ends the episode.
 """
 
 from __future__ import annotations
@@ -16,15 +19,17 @@ import numpy as np
 import torch
 
 RADIUS = 0.3            # obstacle radius
-MARGIN = 0.2            # the expert's waypoint clears the obstacle by this much
+MARGIN = 0.3            # the expert's waypoint clears the obstacle by this much
 SPEED = 0.08            # distance per step at |action| = 1
-GOAL_TOL = 0.05
+GOAL_TOL = 0.1
 MAX_STEPS = 60          # the expert needs about 30
+N_ACTION_STEPS = 8      # actions executed per chunk in closed loop before re-planning
 OBS_DIM, ACTION_DIM = 6, 2
 
 
 class ObstacleRoutesEnv(gym.Env):
-    """Start near (−1, 0), goal near (1, 0), obstacle near the origin; layouts from `reset(seed=)`."""
+    """Start near (−1, 0), obstacle near (−0.45, 0), goal near (1, 0), all on the x axis; layouts
+    (the three x positions) from `reset(seed=)`."""
 
     observation_space = gym.spaces.Box(-2.0, 2.0, (OBS_DIM,), np.float32)
     action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
@@ -32,9 +37,9 @@ class ObstacleRoutesEnv(gym.Env):
     def reset(self, *, seed: Optional[int] = None, options=None):
         super().reset(seed=seed)
         u = self.np_random.uniform(-1.0, 1.0, 3)
-        self.pos = np.array([-1.0, 0.2 * u[0]])
-        self.goal = np.array([1.0, 0.2 * u[1]])
-        self.center = np.array([0.0, 0.1 * u[2]])
+        self.pos = np.array([-1.0 + 0.05 * u[0], 0.0])
+        self.center = np.array([-0.45 + 0.05 * u[1], 0.0])
+        self.goal = np.array([1.0 + 0.1 * u[2], 0.0])
         self.steps, self.route = 0, None     # route: +1 passed above, −1 below (set once past x = 0)
         return self.obs(), {}
 
@@ -97,7 +102,7 @@ def expert_dataset(episodes: int, seed: int = 0, horizon: int = 16):
     return torch.from_numpy(np.concatenate(states)), torch.from_numpy(np.concatenate(chunks))
 
 
-def rollout(act, seed: int, n_action_steps: int = 4) -> dict:
+def rollout(act, seed: int, n_action_steps: int = N_ACTION_STEPS) -> dict:
     """One closed-loop episode on layout `seed`: `act(obs [6]) -> chunk [H, 2]` is called every
     `n_action_steps` actions. Returns success, collision and the side it passed (+1, −1 or None)."""
     env = ObstacleRoutesEnv()
