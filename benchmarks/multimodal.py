@@ -39,8 +39,10 @@ COLUMNS = [("DDPM K=10", "DDPM", "ode", 10), ("FM K=1", "flow_matching", "ode", 
            ("FM K=10", "flow_matching", "ode", 10), ("MF K=1", "mean_flow", "ode", 1),
            ("MF K=2", "mean_flow", "ode", 2), ("FM-SDE K=10", "flow_matching", "sde", 10)]
 RECIPE_FIELDS = {"ratio": "meanflow_ratio_r_neq_t", "time_dist": "meanflow_time_dist",
-                 "adaptive_p": "meanflow_adaptive_p", "adaptive_c": "meanflow_adaptive_c"}
-LOSS_OPTIONS = ("one_step_share",)   # `meanflow_loss` keywords with no config field (measured, not adopted)
+                 "adaptive_p": "meanflow_adaptive_p", "adaptive_c": "meanflow_adaptive_c",
+                 "flow_prediction": "flow_prediction"}
+STRING_KEYS = ("time_dist", "flow_prediction", "tangent")
+LOSS_OPTIONS = ("one_step_share", "tangent")   # `meanflow_loss` keywords with no config field (measured, not adopted)
 
 
 # ----------------------------------------------------------------------------------------- metrics
@@ -123,13 +125,14 @@ def use_loss_options(options: dict) -> None:
 
 
 def make_policy(decoder: str, state_dim: int, action_dim: int, b: Budget) -> ActionDecoderPolicy:
-    extra = {RECIPE_FIELDS[k]: v for k, v in b.recipe.items()
-             if k in RECIPE_FIELDS} if decoder == "mean_flow" else {}
+    extra = {"flow_prediction": "sample" if decoder == "mean_flow" else "velocity"}
+    extra.update({RECIPE_FIELDS[k]: v for k, v in b.recipe.items()
+                  if k in RECIPE_FIELDS} if decoder == "mean_flow" else {})
     use_loss_options({k: v for k, v in b.recipe.items() if k in LOSS_OPTIONS})
     cfg = DecoderConfig(decoder_type=decoder, state_dim=state_dim, action_dim=action_dim, action_chunk_size=16,
                         hidden_size=b.hidden, num_hidden_layers=b.layers, num_attention_heads=4,
                         num_key_value_heads=2, normalization_mode="identity", prediction_type="sample",
-                        flow_prediction="sample" if decoder == "mean_flow" else "velocity", **extra)
+                        **extra)
     return ActionDecoderPolicy(cfg)
 
 
@@ -274,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or key not in (*RECIPE_FIELDS, *LOSS_OPTIONS):
             raise ValueError(f"--recipe: expected KEY=VALUE with KEY in {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}, "
                              f"got {kv!r}")
-        b.recipe[key] = value if key == "time_dist" else float(value)
+        b.recipe[key] = value if key in STRING_KEYS else float(value)
     tasks = [a.only] if a.only else ["synthetic", "obstacle"]
     try:
         results = {t: (run_synthetic if t == "synthetic" else run_obstacle)(a.decoders, b, a.seed) for t in tasks}

@@ -87,6 +87,27 @@ def test_meanflow_loss_gradient_has_stop_gradient_and_skips_jvp_on_r_equal_t(gau
     assert max((x - y).abs().max() for x, y in zip(bad, ref_grads)) > 1e-4
 
 
+@pytest.mark.parametrize("dudt", ["jvp", "finite_difference"])
+def test_boundary_tangent_makes_the_exact_average_velocity_a_zero_loss(gaussian, dudt):
+    """tangent="boundary" uses u(z, t, t), for the exact u the marginal velocity, in the target and
+    the tangent: then the MeanFlow identity holds per row and the loss over r ≠ t rows is 0. The
+    sampled tangent a − e is right only on average, so the same u leaves a clear loss."""
+    a = gaussian.sample(64, torch.Generator().manual_seed(3))                     # [64, 1, 3] float64
+    theta = nn.Parameter(torch.ones((), dtype=torch.float64))
+    u = lambda x, t, r: theta * gaussian.avg_velocity(x, t, r)                     # noqa: E731
+    kw = dict(ratio_r_neq_t=1.0, time_dist="uniform", dudt=dudt)
+    boundary = meanflow_loss(u, a, torch.Generator().manual_seed(7), tangent="boundary", **kw)
+    sampled = meanflow_loss(u, a, torch.Generator().manual_seed(7), **kw)
+    assert boundary.item() < 1e-6 and sampled.item() > 0.1
+    assert boundary.requires_grad
+    # r = t rows still regress a − e: with every row at r = t the two tangents give the same loss.
+    same = [meanflow_loss(u, a, torch.Generator().manual_seed(7), ratio_r_neq_t=0.0, tangent=tg)
+            for tg in ("sampled", "boundary")]
+    assert torch.equal(same[0], same[1]) and same[0].item() > 0.1
+    with pytest.raises(ValueError, match="tangent: expected one of"):
+        meanflow_loss(u, a, tangent="marginal")
+
+
 def test_meanflow_adaptive_weight_uses_the_per_element_mean_of_the_chunk():
     """error = mean(Δ²) over H×D, weight (error + c)^−p, not the paper's ‖Δ‖²: the sum would make
     the loss 8× larger and c 64× smaller relative to the error (docs/benchmarks/meanflow_ablations.md)."""

@@ -114,6 +114,7 @@ def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, 
 
 
 TIME_DISTS = ("logit_normal", "uniform")
+TANGENTS = ("sampled", "boundary")
 
 
 def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: float,
@@ -158,7 +159,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
-                  one_step_share: float = 0.0, dudt: str = "jvp") -> Tensor:
+                  one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled") -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -175,28 +176,46 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     D = 4, and a loss 8× smaller. Measured (docs/benchmarks/meanflow_ablations.md): a wash on a
     synthetic two-route task, and on Meta-World basketball (seed 0, 1500 steps, 1 step) the mean
     reached 62 % against 42 % for the sum, so the mean stays the default.
+
+    `tangent`: the velocity v in the r ≠ t rows' target v − (t − r)·du/dt and in the tangent
+    (v, 1, 0). "sampled": the conditional a − e (the paper). "boundary": sg(u_θ(z, t, t)), the
+    network's own instantaneous (marginal) velocity, from one extra no-grad call over those rows;
+    its target has no sampling variance, and for the exact average velocity it is exact per row.
+    The r = t rows regress a − e either way, which is what trains u_θ(z, t, t).
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
         raise ValueError(f"meanflow_dudt: expected one of {list(MEANFLOW_DUDT)}, got {dudt!r}")
+    if tangent not in TANGENTS:
+        raise ValueError(f"tangent: expected one of {list(TANGENTS)}, got {tangent!r}")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
                                     time_dist, one_step_share)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
-    z, v = interpolate(e, a, t), a - e
+    z, v = interpolate(e, a, t), a - e                                   # [B, H, D] each
+    if tangent == "boundary" and n > 0:
+        c = slice_cond(cond, slice(0, n))
+        with torch.no_grad():
+            v_hat = checked_call(lambda x, tt: avg_velocity(x, tt, tt, **c), z[:n], t[:n], dtype=a.dtype,
+                                 name="avg_velocity")                    # [n, H, D] u_θ(z, t, t)
+        v_tangent = torch.cat([v_hat, v[n:]])
+    else:
+        v_tangent = v
     deltas = []
     if dudt == "finite_difference":
         u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
                          name="avg_velocity")                                # [B, H, D], r = t on rows n:
         target = v
         if n > 0:
-            d = dudt_finite_difference(avg_velocity, z[:n], t[:n], r[:n], v[:n], slice_cond(cond, slice(0, n)))
-            target = torch.cat([v[:n] - _bcast(t[:n] - r[:n], v) * d, v[n:]])
+            d = dudt_finite_difference(avg_velocity, z[:n], t[:n], r[:n], v_tangent[:n],
+                                       slice_cond(cond, slice(0, n)))
+            target = torch.cat([v_tangent[:n] - _bcast(t[:n] - r[:n], v) * d, v[n:]])
         deltas.append(u - target)
     elif n > 0:
         sub = slice(0, n)
-        u, target = meanflow_target(avg_velocity, z[sub], t[sub], r[sub], v[sub], cond=slice_cond(cond, sub))
+        u, target = meanflow_target(avg_velocity, z[sub], t[sub], r[sub], v_tangent[sub],
+                                    cond=slice_cond(cond, sub))
         deltas.append(u - target)
     if n < B and dudt == "jvp":
         sub = slice(n, B)
