@@ -178,3 +178,42 @@ def test_trajectory_plot_has_a_legend_and_names_sampler_and_k():
     assert legends == [["success (1)", "failure (1)", "start", "goal"], ["success (0)", "failure (2)", "start", "goal"]]
     starts = [c for c in fig.axes[0].collections if c.get_offsets().tolist() == [[0.0, 0.6]]]
     assert starts, "each path's start is marked"
+
+
+_OBSERVE = """
+import numpy as np
+from action_decoder.envs.render import check_rendering
+check_rendering()                              # picks MUJOCO_GL before mujoco is imported
+from action_decoder.envs import make_env
+from action_decoder.envs.render import CameraObservation
+env = make_env("metaworld/push", seed=0)
+env.reset(seed=0)
+rig = CameraObservation(["corner2", "topview"], 32)
+first = rig(env)
+for _ in range(15):
+    env.step(np.array([1.0, 0.0, 0.0, 0.0]))
+moved = rig(env)
+rig.close()
+for name in ("corner2", "topview"):
+    assert first[name].shape == (32, 32, 3) and first[name].dtype == np.uint8, first[name].shape
+    assert np.abs(first[name].astype(int) - moved[name].astype(int)).sum() > 0, name   # the arm moved
+assert np.abs(first["corner2"].astype(int) - first["topview"].astype(int)).mean() > 5   # two views
+print("ok")
+"""
+
+
+def test_camera_observation_renders_each_named_camera_of_the_current_state(rendering):
+    if rendering:
+        pytest.skip(f"no offscreen renderer here: {rendering}")
+    run = subprocess.run([sys.executable, "-c", _OBSERVE], env={**os.environ, "PYTHONPATH": SRC},
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
+
+
+def test_camera_observation_refuses_a_camera_list_it_cannot_render():
+    from action_decoder.envs.render import CameraObservation
+
+    with pytest.raises(ValueError, match=r"^cameras: expected a non-empty list of camera names, got 'corner2'$"):
+        CameraObservation("corner2", 32)
+    with pytest.raises(ValueError, match=r"^--cameras: expected an image size of at least 8 pixels, got 4$"):
+        CameraObservation(["corner2"], 4, field="--cameras")

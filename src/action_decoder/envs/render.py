@@ -106,6 +106,71 @@ def check_rendering() -> str:
     return backend
 
 
+def make_renderer(model, camera: str, size: int, field: str = "cameras") -> tuple:
+    """(model, `mujoco.Renderer` of ``size``², camera id) for the named camera of ``model``;
+    a camera the model lacks is one line naming ``field`` and the model's cameras."""
+    import mujoco
+
+    cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    if cam < 0:
+        names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
+        raise ValueError(f"{field}: expected one of {', '.join(names)}, got {camera!r}")
+    glob, quality = model.vis.global_, model.vis.quality
+    kept = glob.offwidth, glob.offheight, quality.offsamples
+    # The offscreen buffer is sized (and multisampled) when the context is made; the model keeps its own.
+    glob.offwidth, glob.offheight = max(glob.offwidth, size), max(glob.offheight, size)
+    quality.offsamples = 0
+    try:
+        renderer = mujoco.Renderer(model, size, size)
+    finally:
+        glob.offwidth, glob.offheight, quality.offsamples = kept
+    return model, renderer, cam
+
+
+def render_frame(env_unwrapped, renderer, cam: int) -> np.ndarray:
+    """One upright frame [S, S, 3] uint8 of the env's current state, without shadows and reflections."""
+    import mujoco
+
+    renderer.update_scene(env_unwrapped.data, camera=cam)
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+    frame = renderer.render()                                                # [S, S, 3]
+    if env_unwrapped.data.cam_xmat[cam].reshape(3, 3)[2, 1] < 0:            # the image's up axis points down
+        frame = np.ascontiguousarray(frame[::-1, ::-1])
+    return frame
+
+
+class CameraObservation:
+    """Camera observations of a Meta-World env: ``rig(env) -> {camera: frame [S, S, 3] uint8}``
+    for the named cameras (Meta-World names: corner, corner2, topview, …), one renderer per
+    (model, camera), upright, no shadows. ``close()`` frees the GL contexts. Call
+    `check_rendering()` before the first env is made: ``MUJOCO_GL`` binds when mujoco is imported."""
+
+    def __init__(self, cameras, size: int, field: str = "cameras"):
+        if isinstance(cameras, str) or not cameras or not all(isinstance(c, str) and c for c in cameras):
+            raise ValueError(f"{field}: expected a non-empty list of camera names, got {cameras!r}")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 8:
+            raise ValueError(f"{field}: expected an image size of at least 8 pixels, got {size!r}")
+        self.cameras, self.size, self.field = list(cameras), size, field
+        self._renderers: dict[tuple, tuple] = {}      # (id(model), camera) -> (model, renderer, camera id)
+
+    def __call__(self, env) -> dict[str, np.ndarray]:
+        u = env.unwrapped
+        frames = {}
+        for camera in self.cameras:
+            key = (id(u.model), camera)
+            if key not in self._renderers:
+                self._renderers[key] = make_renderer(u.model, camera, self.size, self.field)
+            frames[camera] = render_frame(u, *self._renderers[key][1:])
+        return frames
+
+    def close(self) -> None:
+        """Free the GL contexts (one left to interpreter exit prints an EGL traceback there)."""
+        for _, renderer, _ in self._renderers.values():
+            close_renderer(renderer)
+        self._renderers.clear()
+
+
 class EpisodeCamera:
     """The ``on_step(episode, env)`` hook of ``envs.evaluate``: keeps frames ``[S, S, 3]`` uint8 of
     episodes ``0 .. episodes - 1`` from the named camera of each env's own model."""
@@ -114,43 +179,17 @@ class EpisodeCamera:
         self.episodes, self.size, self.camera = episodes, size, camera
         self.frames: dict[int, list[np.ndarray]] = {}
         self.control_dt: float | None = None          # seconds per env step
-        self._renderers: dict[int, tuple] = {}        # id(model) -> (model, renderer, camera id)
+        self._renderers: dict[tuple, tuple] = {}      # (id(model), camera) -> (model, renderer, camera id)
 
     def __call__(self, episode: int, env) -> None:
         if episode >= self.episodes:
             return
-        import mujoco
-
         u = env.unwrapped
         self.control_dt = float(u.dt)
-        _, renderer, cam = self._renderer(u.model)
-        renderer.update_scene(u.data, camera=cam)
-        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        frame = renderer.render()                                            # [S, S, 3]
-        if u.data.cam_xmat[cam].reshape(3, 3)[2, 1] < 0:                     # the image's up axis points down
-            frame = np.ascontiguousarray(frame[::-1, ::-1])
-        self.frames.setdefault(episode, []).append(frame)
-
-    def _renderer(self, model) -> tuple:
-        if id(model) not in self._renderers:
-            import mujoco
-
-            cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, self.camera)
-            if cam < 0:
-                names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
-                raise ValueError(f"--video-camera: expected one of {', '.join(names)}, got {self.camera!r}")
-            glob, quality = model.vis.global_, model.vis.quality
-            kept = glob.offwidth, glob.offheight, quality.offsamples
-            # The offscreen buffer is sized (and multisampled) when the context is made; the model keeps its own.
-            glob.offwidth, glob.offheight = max(glob.offwidth, self.size), max(glob.offheight, self.size)
-            quality.offsamples = 0
-            try:
-                renderer = mujoco.Renderer(model, self.size, self.size)
-            finally:
-                glob.offwidth, glob.offheight, quality.offsamples = kept
-            self._renderers[id(model)] = (model, renderer, cam)
-        return self._renderers[id(model)]
+        key = (id(u.model), self.camera)
+        if key not in self._renderers:
+            self._renderers[key] = make_renderer(u.model, self.camera, self.size, "--video-camera")
+        self.frames.setdefault(episode, []).append(render_frame(u, *self._renderers[key][1:]))
 
     def close(self) -> None:
         """Free the GL contexts (one left to interpreter exit prints an EGL traceback there)."""
