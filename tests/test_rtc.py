@@ -12,7 +12,7 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, rtc_weights, sam
                             sample_ode, sample_ode_rtc, sample_sde, sample_sde_rtc)
 from action_decoder.envs import evaluate
 from action_decoder.envs.evaluate import jerk_stats
-from action_decoder.flows import guidance_weight, rtc_guided_avg_velocity, rtc_guided_velocity
+from action_decoder.flows import guidance_weight, meanflow_guidance, rtc_guided_velocity
 from action_decoder.oracles import Gaussian, GaussianMixture
 
 H, D = 8, 2
@@ -85,19 +85,45 @@ def _fd_grad(phi, x, h=1e-6):
 
 
 def test_guidance_matches_finite_differences_on_analytic_flows():
-    """v_guided − v = w(t)·∇_x[−½ Σ_j W_j |Y_j − Â_j(x)|²], Â = x + (1 − t)·v (FM) or x + (1 − t)·u(x, t, 1) (MF)."""
-    gm, g = two_modes(), Gaussian(torch.linspace(-1, 1, H * D, dtype=torch.float64).reshape(H, D), 0.4)
+    """FM: v_guided − v = w(t)·∇_x[−½ Σ_j W_j |Y_j − Â_j(x)|²] with Â = x + (1 − t)·v."""
+    gm = two_modes()
     x, y = noise(2, seed=3), torch.randn(2, H, D, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
     w = rtc_weights(2, 6, H, dtype=torch.float64)
     t = torch.full((2,), 0.3, dtype=torch.float64)
-    for clean, guided, plain in [
-            (lambda x_: x_ + 0.7 * gm.velocity(x_, t), rtc_guided_velocity(gm.velocity, y, w, 5.0)(x, t),
-             gm.velocity(x, t)),
-            (lambda x_: x_ + 0.7 * g.avg_velocity(x_, t, torch.ones_like(t)),
-             rtc_guided_avg_velocity(g.avg_velocity, y, w, 5.0)(x, t, t + 0.2), g.avg_velocity(x, t, t + 0.2))]:
-        phi = lambda x_: -0.5 * (w[:, None] * (y - clean(x_)).square()).sum()
-        expected = guidance_weight(t, 5.0)[:, None, None] * _fd_grad(phi, x)
-        torch.testing.assert_close(guided - plain, expected, rtol=1e-6, atol=1e-8)
+    phi = lambda x_: -0.5 * (w[:, None] * (y - (x_ + 0.7 * gm.velocity(x_, t))).square()).sum()
+    expected = guidance_weight(t, 5.0)[:, None, None] * _fd_grad(phi, x)
+    torch.testing.assert_close(rtc_guided_velocity(gm.velocity, y, w, 5.0)(x, t) - gm.velocity(x, t), expected,
+                               rtol=1e-6, atol=1e-8)
+
+
+def test_meanflow_guidance_pulls_the_clean_estimate_by_the_weights():
+    """MF: the term is min(β, 1/(1 − t))·W ⊙ (Y − Â), Â = x + (1 − t)·u(x, t, 1); a step to 1 lands on Â + W ⊙ (Y − Â)."""
+    g = Gaussian(torch.linspace(-1, 1, H * D, dtype=torch.float64).reshape(H, D), 0.4)
+    x, y = noise(2, seed=3), torch.randn(2, H, D, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    w = rtc_weights(2, 6, H, dtype=torch.float64)
+    t = torch.tensor([0.0, 0.6], dtype=torch.float64)
+    a_hat = x + (1 - t)[:, None, None] * g.avg_velocity(x, t, torch.ones_like(t))
+    pull, u1 = meanflow_guidance(g.avg_velocity, x, t, y, w, 2.0)
+    torch.testing.assert_close(u1, g.avg_velocity(x, t, torch.ones_like(t)))
+    gain = torch.tensor([1.0, 2.0], dtype=torch.float64)                          # 1/(1 − t) = 1, 2.5 → clipped at 2
+    torch.testing.assert_close(pull, gain[:, None, None] * w[:, None] * (y - a_hat))
+    # One step from 0: the chunk is the guided clean estimate; K = 2 pulls at both steps (2K − 1 = 3 calls).
+    e, prev = noise(4, seed=6), torch.randn(4, 6, D, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    y6, w6 = torch.cat([prev, torch.zeros(4, H - 6, D, dtype=torch.float64)], 1), rtc_weights(2, 6, H, dtype=torch.float64)
+    plain = sample_meanflow(g.avg_velocity, e, 1)
+    torch.testing.assert_close(sample_meanflow_rtc(g.avg_velocity, e, prev, 2, 1),
+                               plain + w6[:, None] * (y6 - plain))
+    calls = []
+    counted = lambda x_, t_, r_: calls.append(float(r_[0])) or g.avg_velocity(x_, t_, r_)
+    two = sample_meanflow_rtc(counted, e, prev, 2, 2)
+    assert sorted(calls) == [0.5, 1.0, 1.0]
+    half = e + 0.5 * g.avg_velocity(e, torch.zeros(4, dtype=e.dtype), torch.full((4,), 0.5, dtype=e.dtype)) \
+        + 0.5 * w6[:, None] * (y6 - plain)
+    t_half = torch.full((4,), 0.5, dtype=e.dtype)
+    a_half = half + 0.5 * g.avg_velocity(half, t_half, torch.ones_like(t_half))
+    expected = a_half + w6[:, None] * (y6 - a_half)
+    expected[:, :2] = prev[:, :2]
+    torch.testing.assert_close(two, expected)
 
 
 def test_guidance_keeps_the_next_chunk_in_the_previous_chunks_mode():
@@ -108,8 +134,7 @@ def test_guidance_keeps_the_next_chunk_in_the_previous_chunks_mode():
     naive, rtc = sample_ode(gm.velocity, e, 10), sample_ode_rtc(gm.velocity, e, prev, 2, 10)
     assert (naive[:, 4].mean(-1) < 0).float().mean() > 0.3                        # about half go to −1
     assert (rtc[:, 4].mean(-1) > 0).all()                                         # all stay at +1
-    # MeanFlow at 1 step on a wide Gaussian (J = ∂Â/∂x = I·std): the clip 1/Δt = 1 moves Â onto Y on
-    # the frozen rows (up to J), and the decaying rows part of the way.
+    # MeanFlow at 1 step: W = 1 over the overlap puts it on Y there; beyond the overlap it is the plain chunk.
     x = sample_meanflow_rtc(g.avg_velocity, e, prev, 2, 1, schedule="ones")
     plain = sample_meanflow(g.avg_velocity, e, 1)
     torch.testing.assert_close(x[:, 2:5], prev[:, 2:5].expand_as(x[:, 2:5]), rtol=0, atol=1e-9)

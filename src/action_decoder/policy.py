@@ -316,9 +316,9 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         0..L−1 (its actions from s on, after s executed ones: L = H − s), and `delay` d ≤ L is how
         many control steps inference takes. The returned chunk's first d actions are prev_chunk's,
         exactly; the rest of the overlap is guided towards prev_chunk with weights that decay
-        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free. Each sampling
-        step then costs one network call more with its vector–Jacobian product (none more for a
-        1-step MeanFlow). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
+        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free. Flow matching's
+        guidance costs each step its vector–Jacobian product; MeanFlow's needs none (a 1-step chunk
+        stays one network call, K steps take 2K − 1). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
         `chain_log_prob` to re-score it).
         """
         cfg = self.config

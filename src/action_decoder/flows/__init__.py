@@ -3,7 +3,7 @@
 from .ddpm import ddpm_loss, sample_ddpm
 from .losses import flow_matching_loss, meanflow_loss, meanflow_target
 from .paths import interpolate, score_from_velocity, time_grid, velocity_from_sample
-from .rtc import (RTC_SCHEDULES, guidance_weight, rtc_guided_avg_velocity, rtc_guided_velocity,
+from .rtc import (RTC_SCHEDULES, guidance_weight, meanflow_guidance, rtc_guided_velocity,
                   rtc_weights, sample_meanflow_rtc, sample_ode_rtc, sample_sde_rtc)
 from .samplers import (SDEResult, chain_log_prob, sample_meanflow, sample_ode, sample_sde,
                        velocity_from_meanflow)
@@ -11,7 +11,7 @@ from .sigma import ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, make_
 
 __all__ = ["RTC_SCHEDULES", "ChurnSigma", "ExploringSigma", "FixedSigma", "LearnableSigma", "SDEResult",
            "chain_log_prob", "ddpm_loss", "flow_matching_loss", "interpolate", "make_sigma",
-           "guidance_weight", "meanflow_loss", "meanflow_target", "rtc_guided_avg_velocity",
+           "guidance_weight", "meanflow_loss", "meanflow_target", "meanflow_guidance",
            "rtc_guided_velocity", "rtc_weights", "sample_meanflow_rtc", "sample_ode_rtc", "sample_sde_rtc", "sample_ddpm", "sample_meanflow", "sample_ode",
            "sample_sde", "score_from_velocity", "time_grid", "velocity_from_meanflow",
            "velocity_from_sample"]
