@@ -201,3 +201,21 @@ def test_proprio_layout_refuses_the_position_shift_augmentation():
     assert augment_shift(TrainConfig(state_layout="metaworld_proprio")) == 0.0
     with pytest.raises(ValueError, match="--augment-shift: shifting positions needs --state-layout metaworld"):
         augment_shift(TrainConfig(state_layout="metaworld_proprio", augment_shift=0.05))
+
+
+def test_validation_on_held_out_chunks_passes_their_images():
+    from types import SimpleNamespace
+
+    from action_decoder.train import validation_metrics
+
+    val = FakeChunks(n=4)
+    val.dataset = SimpleNamespace(episode_ids=np.array([7]))
+    torch.manual_seed(0)
+    policy = ActionDecoderPolicy(DecoderConfig(decoder_type="flow_matching", state_dim=39, action_dim=4,
+                                               action_chunk_size=8, n_action_steps=4, hidden_size=32,
+                                               num_hidden_layers=1, cameras=CAMS, image_size=16))
+    seen = []
+    policy.model.image_encoder.register_forward_hook(lambda m, args, out: seen.append(args[0].shape))
+    out = validation_metrics(policy, val, 1, torch.device("cpu"))
+    assert np.isfinite(out["val_loss"]) and out["frames"] == 4
+    assert seen and all(s == (4, 2, 3, 16, 16) for s in seen)

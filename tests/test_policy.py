@@ -503,3 +503,13 @@ def test_proprio_layout_reads_the_hand_and_gripper_only():
     hand = state.clone()
     hand[:, :3] += 0.3
     assert (policy.sample(dict(b, state=hand), noise=noise).actions - base).abs().max() > 1e-4
+
+
+@pytest.mark.parametrize("decoder_type, sampler", [("flow_matching", "ode"), ("flow_matching", "sde"),
+                                                   ("mean_flow", "ode"), ("DDPM", None)])
+def test_camera_frames_are_encoded_once_per_chunk(decoder_type, sampler):
+    policy = make_camera(decoder_type).eval()
+    calls = []
+    policy.model.image_encoder.register_forward_hook(lambda *a: calls.append(1))
+    policy.sample(camera_batch(), sampler=sampler, steps=4)
+    assert len(calls) == 1
