@@ -1,6 +1,7 @@
 """python -m benchmarks [--quick] [--tiny] [--out DIR] [--quality-dir DIR] [--device cpu|cuda]
 python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)
 python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchmark, benchmarks/multimodal.py)
+python -m benchmarks cameras [...]   (image- against state-conditioned policies, benchmarks/cameras.py)
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ def main(argv: list[str] | None = None) -> int:
         from .multimodal import main as multimodal_main
 
         return multimodal_main(argv[1:])
+    if argv[:1] == ["cameras"]:
+        from .cameras import main as cameras_main
+
+        return cameras_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer rounds (< 3 min on one core)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks and few rounds (smoke test)")

@@ -106,3 +106,40 @@ def test_an_older_format_version_reads_with_the_fields_it_lacked_set_to_their_ol
     path.write_text(json.dumps({**{k: v for k, v in old.items() if k != "hidden_size"}, "format_version": 2}))
     with pytest.raises(ValueError, match=r"missing field\(s\) \['hidden_size'\]"):
         DecoderConfig.from_json(path)
+
+
+def test_camera_fields_round_trip_and_a_format_3_checkpoint_reads_without_cameras(tmp_path):
+    from action_decoder.config import ADDED_FIELDS
+
+    cams = ["observation.images.corner2", "observation.images.topview"]
+    cfg = DecoderConfig(cameras=cams, image_size=48, image_encoder="resnet18", image_tokens_per_camera=6,
+                        freeze_image_encoder=True, image_shift=3)
+    assert cfg.cameras == tuple(cams) and cfg.uses_cameras
+    cfg.to_json(tmp_path / "c.json")
+    assert DecoderConfig.from_json(tmp_path / "c.json") == cfg
+    v3 = {k: v for k, v in DecoderConfig().to_dict().items() if k not in ADDED_FIELDS[4]}
+    (tmp_path / "v3.json").write_text(json.dumps({**v3, "format_version": 3}))
+    old = DecoderConfig.from_json(tmp_path / "v3.json")
+    assert old.cameras == () and not old.uses_cameras and old == DecoderConfig()
+
+
+@pytest.mark.parametrize("over, match", [
+    ({"cameras": "observation.images.a"}, r"cameras: expected a list of LeRobot camera keys 'observation.images.<name>'"),
+    ({"cameras": ["corner2"]}, r"cameras: expected a list of LeRobot camera keys .* got \['corner2'\]"),
+    ({"cameras": ["observation.images.a", "observation.images.a"]}, r"cameras: expected distinct camera keys"),
+    ({"image_encoder": "vit"}, r"image_encoder: expected one of \['conv', 'resnet18'\], got 'vit'"),
+    ({"image_size": 8}, r"image_size: expected at least 16 pixels, got 8"),
+    ({"image_size": 32.0}, r"image_size: expected a positive integer, got 32.0"),
+    ({"image_tokens_per_camera": 0}, r"image_tokens_per_camera: expected a positive integer, got 0"),
+    ({"image_shift": 32}, r"image_shift: expected an integer number of pixels in \[0, image_size/2 = 32\), got 32"),
+    ({"image_shift": -1}, r"image_shift: .* got -1"),
+    ({"freeze_image_encoder": "yes"}, r"freeze_image_encoder: expected True or False, got 'yes'"),
+    ({"image_encoder_pretrained": "microsoft/resnet-18"}, r"image_encoder_pretrained: loads a ResNet-18; expected "
+                                                          r"image_encoder='resnet18', got image_encoder='conv'"),
+    ({"image_encoder_pretrained": "", "image_encoder": "resnet18"}, r"image_encoder_pretrained: expected None or"),
+    ({"state_layout": "metaworld_proprio", "state_dim": 10}, r"state_dim: state_layout='metaworld_proprio' expects"),
+])
+def test_bad_camera_fields_are_one_line_each(over, match):
+    with pytest.raises(ValueError, match=match) as err:
+        DecoderConfig(**over)
+    assert "\n" not in str(err.value)

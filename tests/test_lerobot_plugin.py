@@ -70,11 +70,11 @@ def test_decoder_config_errors_name_the_plugin_field(over, field):
 
 def test_feature_dims_need_state_and_action():
     ft = lambda *shape: SimpleNamespace(shape=shape)  # noqa: E731
-    feats = {"observation.state": ft(6), "observation.images.top": ft(3, 64, 64)}
+    feats = {"observation.state": ft(6), "observation.images.top": ft(3, 64, 64), "observation.environment_state": ft(9)}
     assert convert.feature_dims(feats, {"action": ft(3)}) == (6, 3)
-    assert convert.unused_inputs(feats) == ["observation.images.top"]
+    assert convert.unused_inputs(feats) == ["observation.environment_state"]     # cameras are read
     line = convert.unused_inputs_message(convert.unused_inputs(feats))
-    assert "observation.images.top" in line and "\n" not in line
+    assert "observation.environment_state" in line and "\n" not in line
     assert convert.unused_inputs_message([]) is None
     with pytest.raises(ValueError, match=r"input_features\['observation.state'\]"):
         convert.feature_dims({"observation.images.top": ft(3, 64, 64)}, {"action": ft(3)})
@@ -116,6 +116,66 @@ def test_to_core_batch_rejects_bad_input_in_one_line(batch, match):
     with pytest.raises(ValueError, match=match) as err:
         convert.to_core_batch(batch, TASKS, 6, False)
     assert "\n" not in str(err.value)
+
+
+CAM_KEYS = ["observation.images.wrist", "observation.images.top"]
+
+
+def test_camera_keys_keep_the_feature_order_and_reach_the_core_config():
+    ft = lambda *shape: SimpleNamespace(shape=shape)  # noqa: E731
+    feats = {"observation.images.wrist": ft(3, 48, 64), "observation.state": ft(6), "observation.images.top": ft(3, 32, 32)}
+    assert convert.camera_keys(feats) == CAM_KEYS
+    cfg = convert.decoder_config(plugin_cfg(image_size=24, image_encoder="resnet18", image_tokens_per_camera=2,
+                                            freeze_image_encoder=True, image_shift=2), 6, 3, convert.camera_keys(feats))
+    assert cfg.cameras == tuple(CAM_KEYS) and (cfg.image_size, cfg.image_encoder) == (24, "resnet18")
+    assert (cfg.image_tokens_per_camera, cfg.freeze_image_encoder, cfg.image_shift) == (2, True, 2)
+    with pytest.raises(ValueError, match=r"^policy.image_size: expected at least 16 pixels, got 4$"):
+        convert.decoder_config(plugin_cfg(image_size=4), 6, 3, CAM_KEYS)
+
+
+def test_camera_frames_are_stacked_in_config_order_and_resized():
+    g = torch.Generator().manual_seed(0)
+    wrist, top = torch.rand(2, 3, 48, 64, generator=g), torch.rand(2, 1, 3, 16, 16, generator=g)
+    out = convert.to_core_batch({"observation.state": torch.randn(2, 6), "observation.images.wrist": wrist,
+                                 "observation.images.top": top}, [], 6, False, CAM_KEYS, 16)
+    images = out["images"]                                                      # [B, N_cam, 3, S, S]
+    assert images.shape == (2, 2, 3, 16, 16) and images.dtype == torch.float32
+    assert torch.equal(images[:, 1], top[:, 0])                                  # already 16²: untouched
+    torch.testing.assert_close(images[:, 0].mean((-1, -2)), wrist.mean((-1, -2)), atol=0.02, rtol=0)
+    assert 0 <= float(images.min()) and float(images.max()) <= 1
+    assert "images" not in convert.to_core_batch({"observation.state": torch.randn(2, 6)}, [], 6, False)
+
+
+@pytest.mark.parametrize("frames, match", [
+    (None, r"batch\['observation.images.top'\]: expected camera frames of shape \[2, 3, H, W\] \(float in \[0, 1\]\), got nothing"),
+    (torch.rand(2, 16, 16, 3), r"got \[2, 16, 16, 3\]"),
+    (torch.rand(3, 3, 16, 16), r"expected camera frames of shape \[2, 3, H, W\].*got \[3, 3, 16, 16\]"),
+])
+def test_bad_camera_frames_are_one_line(frames, match):
+    batch = {"observation.state": torch.randn(2, 6), "observation.images.wrist": torch.rand(2, 3, 16, 16)}
+    if frames is not None:
+        batch["observation.images.top"] = frames
+    with pytest.raises(ValueError, match=match) as err:
+        convert.to_core_batch(batch, [], 6, False, CAM_KEYS, 16)
+    assert "\n" not in str(err.value)
+
+
+def test_core_camera_policy_trains_and_samples_on_converted_lerobot_batches():
+    torch.manual_seed(0)
+    cfg = convert.decoder_config(plugin_cfg(chunk_size=8, image_size=16), 6, 3, CAM_KEYS)
+    policy = CorePolicy(cfg)
+    g = torch.Generator().manual_seed(1)
+    lerobot = {"observation.state": torch.randn(4, 6, generator=g), "action": torch.randn(4, 8, 3, generator=g),
+               "observation.images.wrist": torch.rand(4, 3, 32, 32, generator=g),
+               "observation.images.top": torch.rand(4, 3, 16, 16, generator=g)}
+    core = convert.to_core_batch(lerobot, [], 6, True, CAM_KEYS, 16)
+    policy.compute_loss(core).loss.backward()
+    assert policy.model.image_encoder.backbone.net[0].weight.grad.abs().sum() > 0
+    policy.eval()
+    noise = torch.randn(4, 8, 3, generator=g)
+    first = policy.sample(core, noise=noise).actions
+    dark = dict(core, images=core["images"] * 0.1)
+    assert (policy.sample(dark, noise=noise).actions - first).abs().max() > 1e-4
 
 
 def test_task_list_orders_by_task_index():
@@ -267,16 +327,23 @@ def test_lerobot_policy_reaches_the_sde_and_its_log_probs(toy_root):
 
 
 @lerobot_only
-def test_lerobot_policy_names_the_camera_keys_it_does_not_use(caplog):
+def test_lerobot_policy_encodes_its_cameras_and_names_inputs_it_does_not_use(caplog):
     from lerobot.configs.types import FeatureType, PolicyFeature
 
     from lerobot_policy_action_decoder import ActionDecoderConfig, ActionDecoderPolicy
 
-    cfg = ActionDecoderConfig(device="cpu", hidden_size=32, num_hidden_layers=2, input_features={
+    cfg = ActionDecoderConfig(device="cpu", hidden_size=32, num_hidden_layers=2, image_size=16, input_features={
         "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
-        "observation.images.top": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32))},
+        "observation.images.top": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32)),
+        "observation.environment_state": PolicyFeature(type=FeatureType.ENV, shape=(9,))},
         output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(3,))})
     with caplog.at_level("WARNING"):
-        ActionDecoderPolicy(cfg)
-    lines = [r.getMessage() for r in caplog.records if "observation.images.top" in r.getMessage()]
-    assert len(lines) == 1 and "\n" not in lines[0] and "context" in lines[0]
+        policy = ActionDecoderPolicy(cfg)
+    assert policy.decoder.config.cameras == ("observation.images.top",)
+    lines = [r.getMessage() for r in caplog.records if "observation.environment_state" in r.getMessage()]
+    assert len(lines) == 1 and "\n" not in lines[0] and "observation.images.top" not in lines[0]
+    batch = {"observation.state": torch.randn(2, 6), "observation.images.top": torch.rand(2, 3, 32, 32),
+             "action": torch.randn(2, 16, 3), "action_is_pad": torch.zeros(2, 16, dtype=torch.bool)}
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    assert policy.decoder.model.image_encoder.proj.weight.grad.abs().sum() > 0

@@ -388,3 +388,128 @@ def test_multitask_checkpoint_refuses_to_sample_without_its_task(tmp_path):
     # One task, or a policy with no conditioning path at all, has nothing to be told.
     make("flow_matching", context_dim=3, extra={"tasks": tasks[:1]}).eval().predict_action_chunk(b)
     make("flow_matching", extra={"tasks": tasks}).eval().predict_action_chunk(b)
+
+
+# ---------------------------------------------------------------------- cameras
+CAMS = ("observation.images.left", "observation.images.wrist")
+
+
+def make_camera(decoder_type="flow_matching", **kw):
+    return make(decoder_type, cameras=CAMS, image_size=16, **kw)
+
+
+def camera_batch(b=3, seed=0, actions=True):
+    g = torch.Generator().manual_seed(seed + 100)
+    return {**batch(b, seed, actions), "images": torch.randint(0, 256, (b, 2, 3, 16, 16), dtype=torch.uint8, generator=g)}
+
+
+@pytest.mark.parametrize("decoder_type", ["flow_matching", "mean_flow", "DDPM"])
+def test_changing_one_camera_frame_changes_the_sampled_chunk(decoder_type):
+    policy = make_camera(decoder_type).eval()
+    b, noise = camera_batch(), torch.randn(3, 8, 3, generator=torch.Generator().manual_seed(1))
+    same = policy.sample(b, noise=noise).actions
+    assert torch.equal(same, policy.sample(b, noise=noise).actions)              # eval(): deterministic
+    other = dict(b, images=b["images"].clone())
+    other["images"][0, 1] = 255 - other["images"][0, 1]                          # row 0's second camera only
+    moved = policy.sample(other, noise=noise).actions
+    assert (moved[0] - same[0]).abs().max() > 1e-4
+    torch.testing.assert_close(moved[1:], same[1:])                              # the other rows keep theirs
+
+
+def test_float_frames_in_unit_range_encode_like_uint8():
+    policy = make_camera().eval()
+    b, noise = camera_batch(), torch.randn(3, 8, 3)
+    as_float = dict(b, images=b["images"].float() / 255)
+    torch.testing.assert_close(policy.sample(as_float, noise=noise).actions, policy.sample(b, noise=noise).actions)
+
+
+@pytest.mark.parametrize("decoder_type", ["flow_matching", "mean_flow"])
+def test_training_gradients_reach_the_image_encoder(decoder_type):
+    policy = make_camera(decoder_type).train()
+    policy.compute_loss(camera_batch(), torch.Generator().manual_seed(0)).loss.backward()
+    enc = policy.model.image_encoder
+    for name, p in [("first conv", enc.backbone.net[0].weight), ("projection", enc.proj.weight),
+                    ("camera embedding", enc.camera_embed), ("image k/v", policy.model.conditioning.image_kv.weight)]:
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+
+
+def test_frozen_image_backbone_gets_no_gradient_but_its_tokens_train():
+    policy = make_camera(freeze_image_encoder=True).train()
+    policy.compute_loss(camera_batch(), torch.Generator().manual_seed(0)).loss.backward()
+    enc = policy.model.image_encoder
+    assert all(p.grad is None and not p.requires_grad for p in enc.backbone.parameters())
+    assert enc.proj.weight.grad.abs().sum() > 0
+
+
+def test_camera_policy_saves_its_encoder_and_reloads_identical_chunks(tmp_path):
+    policy = make_camera("mean_flow").eval()
+    b, noise = camera_batch(), torch.randn(3, 8, 3)
+    policy.save_pretrained(tmp_path / "ckpt")
+    from safetensors.torch import load_file
+
+    assert any(k.startswith("model.image_encoder.backbone.") for k in load_file(str(tmp_path / "ckpt" / "model.safetensors")))
+    loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt").eval()
+    assert loaded.config.cameras == CAMS and loaded.config.image_size == 16
+    torch.testing.assert_close(loaded.sample(b, noise=noise).actions, policy.sample(b, noise=noise).actions,
+                               rtol=0, atol=0)
+
+
+def test_training_shift_changes_the_encoding_and_eval_does_not():
+    policy = make_camera(image_shift=3)
+    enc, images = policy.model.image_encoder, camera_batch()["images"]
+    enc.eval()
+    assert torch.equal(enc(images), enc(images))
+    enc.train()
+    torch.manual_seed(0)
+    shifted = [enc(images) for _ in range(3)]
+    assert any((s - enc.eval()(images)).abs().max() > 1e-4 for s in shifted)
+    no_shift = make_camera(image_shift=0).model.image_encoder
+    assert torch.equal(no_shift.train()(images), no_shift.eval()(images))
+
+
+@pytest.mark.parametrize("images, match", [
+    (None, r"batch\['images'\]: missing; this policy conditions on cameras; expected a tensor \[3, 2, 3, 16, 16\]"),
+    (torch.zeros(3, 1, 3, 16, 16, dtype=torch.uint8), r"batch\['images'\]: expected a tensor \[3, 2, 3, 16, 16\].*got \[3, 1, 3, 16, 16\]"),
+    (torch.zeros(3, 2, 16, 16, 3, dtype=torch.uint8), r"expected a tensor \[3, 2, 3, 16, 16\] \(batch, cameras \['observation.images.left', 'observation.images.wrist'\]"),
+    (torch.zeros(3, 2, 3, 16, 16, dtype=torch.int64), r"got \[3, 2, 3, 16, 16\] torch.int64"),
+    (torch.full((3, 2, 3, 16, 16), 255.0), r"expected floating-point pixels in \[0, 1\] \(or uint8 0..255\), got values in \[255, 255\]"),
+    (torch.full((3, 2, 3, 16, 16), float("nan")), r"expected floating-point pixels in \[0, 1\]"),
+])
+def test_bad_camera_input_is_one_line_naming_the_key_and_shape(images, match):
+    policy = make_camera().eval()
+    b = {**camera_batch(), "images": images}
+    with pytest.raises(ValueError, match=match) as err:
+        policy.sample(b)
+    assert "\n" not in str(err.value)
+
+
+def test_images_for_a_policy_without_cameras_are_refused():
+    with pytest.raises(ValueError, match=r"batch\['images'\]: this policy has no cameras"):
+        make().eval().sample(camera_batch())
+
+
+def test_proprio_layout_reads_the_hand_and_gripper_only():
+    """With state_layout="metaworld_proprio" the network reads entries 0..3 of the 39-d state: moving an
+    object or the goal leaves the chunk as it is, moving the hand does not."""
+    policy = make_camera(state_dim=39, state_layout="metaworld_proprio", stats=None).eval()
+    assert policy.model.state_in.in_features == 4
+    g = torch.Generator().manual_seed(0)
+    state, noise = torch.rand(3, 39, generator=g), torch.randn(3, 8, 3, generator=g)
+    b = dict(camera_batch(), state=state)
+    base = policy.sample(b, noise=noise).actions
+    objects = state.clone()
+    objects[:, 4:] += 0.3
+    torch.testing.assert_close(policy.sample(dict(b, state=objects), noise=noise).actions, base)
+    hand = state.clone()
+    hand[:, :3] += 0.3
+    assert (policy.sample(dict(b, state=hand), noise=noise).actions - base).abs().max() > 1e-4
+
+
+@pytest.mark.parametrize("decoder_type, sampler", [("flow_matching", "ode"), ("flow_matching", "sde"),
+                                                   ("mean_flow", "ode"), ("DDPM", None)])
+def test_camera_frames_are_encoded_once_per_chunk(decoder_type, sampler):
+    policy = make_camera(decoder_type).eval()
+    calls = []
+    policy.model.image_encoder.register_forward_hook(lambda *a: calls.append(1))
+    policy.sample(camera_batch(), sampler=sampler, steps=4)
+    assert len(calls) == 1

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-from .state_layout import METAWORLD_STATE_DIM, STATE_LAYOUTS, feature_dim
+from .state_layout import METAWORLD_LAYOUTS, METAWORLD_STATE_DIM, STATE_LAYOUTS, input_dim
 
 DECODER_TYPES = ("DDPM", "flow_matching", "mean_flow")
 PREDICTION_TYPES = ("epsilon", "sample")
@@ -24,14 +24,18 @@ MEANFLOW_VELOCITIES = ("boundary", "identity")
 MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
+IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
+CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 3
+CONFIG_FORMAT_VERSION = 4
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
     3: {"rtc_guidance_weight": 5.0, "rtc_schedule": "exp", "meanflow_dudt": "jvp"},
+    4: {"cameras": (), "image_size": 64, "image_encoder": "conv", "image_tokens_per_camera": 4,
+        "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 4},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -111,11 +115,24 @@ class DecoderConfig:
     vlm_num_layers: Optional[int] = None
     vlm_head_dim: Optional[int] = None
     vlm_num_key_value_heads: Optional[int] = None
+    # --- cameras (expert/image_encoder.py; none: no image encoder) ---
+    # LeRobot feature keys, e.g. "observation.images.corner2"; batch["images"] [B, N_cam, 3, S, S]
+    # stacks them in this order.
+    cameras: tuple = ()
+    image_size: int = 64                   # S: square frames, in pixels
+    image_encoder: str = "conv"            # "conv" (small, GroupNorm) or "resnet18" (transformers, GroupNorm)
+    image_tokens_per_camera: int = 4       # pooled cells of the feature map, one context token each
+    # resnet18 only: a local directory or Hub id of a ResNet-18 (`ResNetModel.from_pretrained`),
+    # read when the policy is built for training; its BatchNorm statistics stay frozen.
+    image_encoder_pretrained: Optional[str] = None
+    freeze_image_encoder: bool = False     # the backbone's weights stay fixed (tokens' projection trains)
+    image_shift: int = 4                   # training-time random shift: pad by this many pixels, crop back
     # --- policy ---
     n_action_steps: int = 4     # of 16: re-planning every 4 actions instead of 8 took flow matching
                                 # from 72.4 to 80.4 % on nine hard Meta-World tasks (10 demos)
     normalization_mode: str = "mean_std"
-    state_layout: str = "flat"   # "metaworld": relative positions appended (state_layout.py)
+    state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
+                                 # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0
     extra: dict = field(default_factory=dict)  # free-form, carried through save/load
 
@@ -179,11 +196,39 @@ class DecoderConfig:
         if self.flow_sde_use and self.decoder_type == "DDPM":
             raise ValueError("flow_sde_use: the SDE sampler serves flow_matching and mean_flow; "
                              "decoder_type='DDPM' samples with DPM-Solver (set flow_sde_use=False)")
-        if self.state_layout == "metaworld" and self.state_dim != METAWORLD_STATE_DIM:
-            raise ValueError(f"state_dim: state_layout='metaworld' expects Meta-World's "
+        if self.state_layout in METAWORLD_LAYOUTS and self.state_dim != METAWORLD_STATE_DIM:
+            raise ValueError(f"state_dim: state_layout={self.state_layout!r} expects Meta-World's "
                              f"{METAWORLD_STATE_DIM}-d state, got state_dim={self.state_dim}")
         if not isinstance(self.extra, dict):
             raise ValueError(f"extra: expected a dict, got {type(self.extra).__name__}")
+        self._validate_cameras()
+
+    def _validate_cameras(self) -> None:
+        cams = self.cameras
+        if isinstance(cams, str) or not isinstance(cams, (list, tuple)) or \
+                not all(isinstance(c, str) and c.startswith(CAMERA_PREFIX) and len(c) > len(CAMERA_PREFIX) for c in cams):
+            raise ValueError(f"cameras: expected a list of LeRobot camera keys '{CAMERA_PREFIX}<name>' (empty: "
+                             f"no cameras), got {cams!r}")
+        if len(set(cams)) != len(cams):
+            raise ValueError(f"cameras: expected distinct camera keys, got {list(cams)}")
+        self.cameras = tuple(cams)
+        _choice("image_encoder", self.image_encoder, IMAGE_ENCODERS)
+        for name in ("image_size", "image_tokens_per_camera"):
+            _positive_int(name, getattr(self, name))
+        if self.image_size < 16:
+            raise ValueError(f"image_size: expected at least 16 pixels, got {self.image_size}")
+        if isinstance(self.image_shift, bool) or not isinstance(self.image_shift, int) or \
+                not 0 <= self.image_shift < self.image_size // 2:
+            raise ValueError(f"image_shift: expected an integer number of pixels in [0, image_size/2 = "
+                             f"{self.image_size // 2}), got {self.image_shift!r}")
+        if not isinstance(self.freeze_image_encoder, bool):
+            raise ValueError(f"freeze_image_encoder: expected True or False, got {self.freeze_image_encoder!r}")
+        pre = self.image_encoder_pretrained
+        if pre is not None and (not isinstance(pre, str) or not pre):
+            raise ValueError(f"image_encoder_pretrained: expected None or a local directory or Hub id, got {pre!r}")
+        if pre is not None and self.image_encoder != "resnet18":
+            raise ValueError(f"image_encoder_pretrained: loads a ResNet-18; expected image_encoder='resnet18', "
+                             f"got image_encoder={self.image_encoder!r}")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -193,11 +238,15 @@ class DecoderConfig:
     @property
     def state_input_dim(self) -> int:
         """Width of what the network reads: the normalised state and the layout's features."""
-        return self.state_dim + feature_dim(self.state_layout)
+        return input_dim(self.state_layout, self.state_dim)
 
     @property
     def uses_vlm_cache(self) -> bool:
         return self.vlm_num_layers is not None
+
+    @property
+    def uses_cameras(self) -> bool:
+        return len(self.cameras) > 0
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict:

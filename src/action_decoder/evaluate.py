@@ -83,7 +83,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     in one batched call (`policy.sample` takes one generator per row): an episode's actions do not
     depend on the other episodes sharing its batch, so results do not depend on `num_envs` (up to
     float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
-    `generator`.
+    `generator`. `images` [B, N_cam, 3, S, S] (as `envs.evaluate` passes them with a camera rig)
+    condition a camera policy.
     """
     device = next(policy.parameters()).device
     base = generator.initial_seed()
@@ -95,8 +96,10 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     @torch.no_grad()
     def policy_fn(states: np.ndarray, task_index: np.ndarray, episode_seeds: Optional[np.ndarray] = None,
                   plan_indices: Optional[np.ndarray] = None, prev_chunks: Optional[np.ndarray] = None,
-                  delay: int = 0) -> np.ndarray:
+                  delay: int = 0, images: Optional[np.ndarray] = None) -> np.ndarray:
         batch = {"state": torch.from_numpy(np.asarray(states, dtype=np.float32)).to(device)}   # [B, S]
+        if images is not None:
+            batch["images"] = torch.from_numpy(np.ascontiguousarray(images)).to(device)         # [B, N, 3, S, S] uint8
         ctx = task_context(torch.as_tensor(task_index), num_tasks)
         batch.update({k: v.to(device) for k, v in ctx.items()})
         gens = generator
@@ -144,6 +147,10 @@ def run_eval(cfg: EvalConfig) -> dict:
     if unknown:
         raise ValueError(f"--task: {unknown} not among the tasks this policy was trained on: {trained}")
     policy.resolve_sampler(cfg.sampler)   # fail early on an unsafe decoder/sampler mix
+    if policy.config.uses_cameras:
+        from .envs.render import check_rendering
+
+        check_rendering()                  # before any env exists: MUJOCO_GL binds at mujoco's import
     steps = cfg.steps or None
     generator = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
     fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
@@ -160,14 +167,16 @@ def run_eval(cfg: EvalConfig) -> dict:
                   f"({done}/{total} done, running success {np.mean(wins):.2f})", flush=True)
 
         camera = EpisodeCamera(cfg.video_episodes, cfg.video_size, cfg.video_camera) if cfg.video else None
+        rig = policy_camera_rig(policy)
         try:
             res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
                            max_steps=cfg.max_steps, num_envs=cfg.num_envs, task_index=index, progress=progress,
                            record=cfg.plot, on_step=camera,
-                           delay=cfg.delay, rtc=cfg.rtc)
+                           delay=cfg.delay, rtc=cfg.rtc, camera_rig=rig)
         finally:
-            if camera is not None:
-                camera.close()
+            for closable in (camera, rig):
+                if closable is not None:
+                    closable.close()
         if camera is not None:      # encoded now (frames are large), moved next to the summary at the end
             encoded = camera.write(res["successes"], cfg.video_layout, cfg.video_fps, Path(video_dir.name), f"_{task}")
             videos.update((path.name, path) for path in encoded)
@@ -194,6 +203,19 @@ def run_eval(cfg: EvalConfig) -> dict:
     update_card(Path(cfg.checkpoint), policy, summary, [r["task"] for r in results])
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
+
+
+def policy_camera_rig(policy: ActionDecoderPolicy):
+    """A `CameraObservation` of the policy's cameras at its image size (Meta-World camera `name` for the
+    key `observation.images.<name>`), or None for a policy without cameras."""
+    from .config import CAMERA_PREFIX
+    from .envs.render import CameraObservation
+
+    cfg = policy.config
+    if not cfg.uses_cameras:
+        return None
+    return CameraObservation([key[len(CAMERA_PREFIX):] for key in cfg.cameras], cfg.image_size,
+                             field="checkpoint cameras")
 
 
 def _mean_jerk(results: list) -> Optional[float]:

@@ -29,7 +29,7 @@ from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, m
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
 from .normalize import make_normalizers
-from .state_layout import relative_positions
+from .state_layout import network_state
 
 SAMPLERS = (None, "ode", "sde", "euler")
 CONFIG_NAME, WEIGHTS_NAME = "config.json", "model.safetensors"
@@ -69,12 +69,15 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     guide in `docs/` describe it). Checkpoints use the Hub's `PyTorchModelHubMixin` layout
     (`save_pretrained`, `from_pretrained`, `push_to_hub`)."""
 
-    def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None):
+    def __init__(self, config: DecoderConfig, stats: Optional[Mapping[str, Mapping]] = None, *,
+                 load_pretrained: bool = True):
+        """`load_pretrained=False` leaves `config.image_encoder_pretrained` unread (its architecture is
+        built; the weights come from a checkpoint, as in `from_pretrained`)."""
         super().__init__()
         if not isinstance(config, DecoderConfig):
             raise ValueError(f"config: expected a DecoderConfig, got {type(config).__name__}")
         self.config = config
-        self.model = ActionExpert(config)
+        self.model = ActionExpert(config, load_pretrained)
         self.normalizers = make_normalizers(config.state_dim, config.action_dim,
                                             config.normalization_mode, stats)
         # The noise schedule is a submodule so that a learnable σ is a policy parameter.
@@ -116,6 +119,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if mask is not None and (not isinstance(mask, Tensor) or list(mask.shape) != list(ctx.shape[:2])):
                 got = list(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
                 raise ValueError(f"batch['context_mask']: expected shape {list(ctx.shape[:2])}, got {got}")
+        self._validate_images(batch, b)
         tasks = cfg.extra.get("tasks")
         tasks = list(tasks) if isinstance(tasks, (list, tuple)) else []
         conditioned = cfg.context_dim is not None or cfg.uses_vlm_cache
@@ -126,6 +130,29 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                              f"batch['context'] = action_decoder.train.task_context(task_index [B], {len(tasks)})"
                              f"['context'] ([B, 1, {len(tasks)}] one-hot; task_index = position in "
                              f"config.extra['tasks']) or the batch's vlm_key_values")
+
+    def _validate_images(self, batch: Mapping[str, Any], b: int) -> None:
+        """`images` [B, N_cam, 3, S, S]: uint8 (0..255) or floating point in [0, 1], cameras in config order."""
+        cfg = self.config
+        images = batch.get("images")
+        if not cfg.uses_cameras:
+            if images is not None:
+                raise ValueError("batch['images']: this policy has no cameras (DecoderConfig.cameras is empty); "
+                                 "drop the images or train a policy with cameras")
+            return
+        n, s = len(cfg.cameras), cfg.image_size
+        want = f"[{b}, {n}, 3, {s}, {s}] (batch, cameras {list(cfg.cameras)}, RGB, image_size²), uint8 or float in [0, 1]"
+        if images is None:
+            raise ValueError(f"batch['images']: missing; this policy conditions on cameras; expected a tensor {want}")
+        if not isinstance(images, Tensor) or list(images.shape) != [b, n, 3, s, s] or \
+                not (images.dtype == torch.uint8 or images.is_floating_point()):
+            got = f"{list(images.shape)} {images.dtype}" if isinstance(images, Tensor) else type(images).__name__
+            raise ValueError(f"batch['images']: expected a tensor {want}, got {got}")
+        if images.is_floating_point():
+            low, high = float(images.min()), float(images.max())
+            if not (0.0 <= low and high <= 1.0):     # NaN fails too
+                raise ValueError(f"batch['images']: expected floating-point pixels in [0, 1] (or uint8 0..255), "
+                                 f"got values in [{low:.4g}, {high:.4g}]")
 
     def _check_noise(self, batch: Mapping[str, Any], noise: Tensor) -> None:
         """`noise` must be one chunk per state row: a shorter chunk would come back short."""
@@ -140,16 +167,16 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             raise ValueError(f"noise: contains NaN or Inf (shape {shape})")
 
     def _prepare(self, batch: Mapping[str, Any]) -> dict:
-        """Normalised state, ctrl_freq and the conditioning prefix (built once)."""
+        """Normalised state, ctrl_freq and the conditioning prefix (built once: camera frames are
+        encoded here, once per chunk)."""
         param = next(self.model.parameters())
         raw = batch["state"].to(param.device, torch.float32)
-        state = self.normalizers["state"].normalize(raw)                      # [B, state_dim]
-        if self.config.state_layout == "metaworld":
-            state = torch.cat([state, relative_positions(raw)], dim=-1)      # [B, state_input_dim]
+        state = network_state(self.config.state_layout, self.normalizers["state"].normalize(raw), raw)
         ctrl = batch.get("ctrl_freq")
         prefix = self.model.build_prefix(
             context=_to(batch.get("context"), param.device), context_mask=_to(batch.get("context_mask"), param.device),
-            vlm_key_values=batch.get("vlm_key_values"), attention_mask=_to(batch.get("attention_mask"), param.device))
+            vlm_key_values=batch.get("vlm_key_values"), attention_mask=_to(batch.get("attention_mask"), param.device),
+            images=_to(batch.get("images"), param.device))
         return {"state": state, "ctrl_freq": None if ctrl is None else ctrl.to(param.device, torch.float32),
                 "prefix": prefix}
 
@@ -467,7 +494,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if not (path / name).is_file():
                 raise FileNotFoundError(f"checkpoint: {path} has no {name}; expected a directory written "
                                         f"by save_pretrained ({CONFIG_NAME} + {WEIGHTS_NAME})")
-        policy = cls(DecoderConfig.from_json(path / CONFIG_NAME))
+        policy = cls(DecoderConfig.from_json(path / CONFIG_NAME), load_pretrained=False)
         try:
             tensors = load_file(str(path / WEIGHTS_NAME), device=str(map_location))
         except (SafetensorError, OSError, json.JSONDecodeError) as err:

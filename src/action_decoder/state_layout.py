@@ -12,6 +12,11 @@ teach a network on their own:
   another valid scene with the same delta actions, so training sees layouts between and
   around the demonstrated ones.
 
+A camera policy on Meta-World ("metaworld_proprio") reads the robot's proprioception only, the
+hand position and the gripper opening (the first `PROPRIO_DIM` entries): where the objects and
+the goal are must come from its cameras. The full 39-d state still arrives (and is normalised
+as a whole), so the same environment loop serves both.
+
 An absent object is zeros in Meta-World (a real position never is: the table is at y > 0.3),
 so it is neither shifted nor given relative features.
 """
@@ -21,8 +26,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-STATE_LAYOUTS = ("flat", "metaworld")
+STATE_LAYOUTS = ("flat", "metaworld", "metaworld_proprio")
+METAWORLD_LAYOUTS = ("metaworld", "metaworld_proprio")
 METAWORLD_STATE_DIM = 39
+PROPRIO_DIM = 4      # hand x, y, z and the gripper opening
 # Start of each 3-d position in Meta-World's observation (v3): current frame, previous frame, goal.
 HAND, OBJ1, OBJ2, GOAL = 0, 4, 11, 36
 PREV_HAND, PREV_OBJ1, PREV_OBJ2 = 18, 22, 29
@@ -36,6 +43,21 @@ RELATIVE_SCALE = 0.1
 def feature_dim(layout: str) -> int:
     """How many entries the layout appends to the normalised state."""
     return 3 * len(RELATIVE) if layout == "metaworld" else 0
+
+
+def input_dim(layout: str, state_dim: int) -> int:
+    """Width of what the network reads of a `state_dim` state under `layout`."""
+    return PROPRIO_DIM if layout == "metaworld_proprio" else state_dim + feature_dim(layout)
+
+
+def network_state(layout: str, normalized: Tensor, raw: Tensor) -> Tensor:
+    """What the network reads [B, input_dim]: the normalised state [B, S], with the relative positions
+    of the raw [B, 39] state appended ("metaworld"), or only its proprioception ("metaworld_proprio")."""
+    if layout == "metaworld":
+        return torch.cat([normalized, relative_positions(raw)], dim=-1)
+    if layout == "metaworld_proprio":
+        return normalized[:, :PROPRIO_DIM]
+    return normalized
 
 
 def _pos(state: Tensor, start: int) -> Tensor:

@@ -16,8 +16,9 @@ import sys
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Mapping, Optional
 
+import numpy as np
 import torch
 from torch.utils.data import default_collate
 
@@ -63,9 +64,23 @@ class TrainConfig:
     ema_decay: float = 0.999
     """Ceiling of the decay of the weight average that `final/` holds (0: the raw weights); warmed
     up as 1 − (1 + n)^(−3/4) so that the random initial weights fade within the first steps."""
-    state_layout: Literal["auto", "flat", "metaworld"] = "auto"
-    """What the state vector is (auto: metaworld for Meta-World tasks, flat for --dataset). With
-    metaworld the policy appends relative positions and training shifts layouts (state_layout.py)."""
+    state_layout: Literal["auto", "flat", "metaworld", "metaworld_proprio"] = "auto"
+    """What the state vector is (auto: flat for --dataset; for Meta-World tasks metaworld, or
+    metaworld_proprio with cameras). With metaworld the policy appends relative positions and
+    training shifts layouts; with metaworld_proprio it reads only the hand position and gripper
+    (the first 4 of 39 entries), so where objects and goal are must come from the cameras
+    (state_layout.py)."""
+    image_encoder: Literal["conv", "resnet18"] = "conv"
+    """Camera policies: the backbone (conv: small, for CPU runs; resnet18: transformers' ResNet-18
+    with GroupNorm, needs the [vlm] extra)."""
+    image_encoder_pretrained: Optional[str] = None
+    """Camera policies, resnet18: a local directory or Hub id of pretrained ResNet-18 weights."""
+    freeze_image_encoder: bool = False
+    """Camera policies: keep the backbone's weights fixed (the token projection trains)."""
+    image_tokens: int = DecoderConfig.image_tokens_per_camera
+    """Camera policies: context tokens per camera (cells of the pooled feature map)."""
+    image_shift: int = DecoderConfig.image_shift
+    """Camera policies: largest random shift of a training frame, in pixels (0: none)."""
     augment_shift: Optional[float] = None
     """Largest horizontal shift, in metres, of the whole scene per training sample (None: 0.05 with
     the metaworld layout, 0 with flat; needs the metaworld layout)."""
@@ -208,7 +223,8 @@ def validation_metrics(policy: ActionDecoderPolicy, val, num_tasks: int, device:
     for start in range(0, len(val), VAL_BATCH):
         items = default_collate([val[i] for i in range(start, min(start + VAL_BATCH, len(val)))])
         batch = {"state": items["state"].to(device), "actions": items["actions"].to(device),   # [B, S], [B, H, D]
-                 **{k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()}}
+                 **{k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()},
+                 **({"images": items["images"].to(device)} if "images" in items else {})}   # [B, N_cam, 3, S, S]
         draws = [float(policy.compute_loss(batch, loss_gen).loss) for _ in range(VAL_NOISE_DRAWS)]
         loss_sum += sum(draws) / VAL_NOISE_DRAWS * len(items["state"])
         chunk = policy.sample(batch, generator=sample_gen).actions                 # [B, H, D]
@@ -244,9 +260,13 @@ def demo_noise(cfg: TrainConfig) -> float:
 
 
 def state_layout(cfg: TrainConfig) -> str:
+    """The layout `--state-layout auto` resolves to: flat for a --dataset; for generated Meta-World
+    demonstrations metaworld, or metaworld_proprio when they come with cameras (`--cameras`)."""
     if cfg.state_layout != "auto":
         return cfg.state_layout
-    return "flat" if cfg.dataset is not None else "metaworld"
+    if cfg.dataset is not None:
+        return "flat"
+    return "metaworld_proprio" if getattr(cfg, "cameras", None) else "metaworld"
 
 
 def augment_shift(cfg: TrainConfig) -> float:
@@ -267,9 +287,39 @@ def flow_prediction(cfg: TrainConfig) -> str:
     return cfg.flow_prediction or ("sample" if cfg.decoder == "mean_flow" else "velocity")
 
 
-def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: list[str]) -> DecoderConfig:
+IMAGE_OPTIONS = ("image_encoder", "image_encoder_pretrained", "freeze_image_encoder", "image_tokens", "image_shift")
+
+
+def camera_fields(cfg: TrainConfig, images: Optional[Mapping[str, np.ndarray]]) -> dict:
+    """The DecoderConfig fields of a dataset's cameras (`EpisodeDataset.images`: key → uint8
+    [N, S, S, 3], in the order `ChunkDataset` stacks them); {} without images."""
+    layout = state_layout(cfg)
+    if not images:
+        image_options = [f"--{f.name.replace('_', '-')}" for f in fields(TrainConfig) if f.name in IMAGE_OPTIONS
+                         and getattr(cfg, f.name) != f.default]
+        if image_options:
+            raise ValueError(f"{', '.join(image_options)}: set the image encoder of a camera policy; this run has "
+                             f"no cameras (pass --cameras)")
+        if layout == "metaworld_proprio":
+            raise ValueError("--state-layout: metaworld_proprio reads only the hand and gripper, so the policy "
+                             "needs cameras to see objects and goal; pass --cameras or another --state-layout")
+        return {}
+    sizes = {tuple(frames.shape[1:]) for frames in images.values()}
+    if len(sizes) != 1 or len(next(iter(sizes))) != 3 or next(iter(sizes))[0] != next(iter(sizes))[1]:
+        raise ValueError(f"cameras: expected square frames [N, S, S, 3] of one size for every camera, got "
+                         f"{ {k: list(v.shape) for k, v in images.items()} }")
+    return {"cameras": tuple(images), "image_size": int(next(iter(sizes))[0]), "image_encoder": cfg.image_encoder,
+            "image_encoder_pretrained": cfg.image_encoder_pretrained,
+            "freeze_image_encoder": cfg.freeze_image_encoder, "image_tokens_per_camera": cfg.image_tokens,
+            "image_shift": cfg.image_shift}
+
+
+def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: list[str],
+                   images: Optional[Mapping[str, np.ndarray]] = None) -> DecoderConfig:
+    """The policy's config: `cfg`'s decoder and network, conditioned on the tasks' one-hot token
+    (several tasks) and on the cameras of `images` (the dataset's `EpisodeDataset.images`)."""
     k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
-    return DecoderConfig(state_layout=state_layout(cfg),
+    return DecoderConfig(state_layout=state_layout(cfg), **camera_fields(cfg, images),
         decoder_type=cfg.decoder, prediction_type=cfg.prediction_type, num_inference_timesteps=k,
         action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, state_dim=state_dim,
         action_dim=action_dim, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
@@ -289,6 +339,8 @@ def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: f
         state = shift_positions(state, offset)
     batch = {"state": state.to(device), "actions": items["actions"].to(device)}
     batch.update({k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()})
+    if "images" in items:
+        batch["images"] = items["images"].to(device)                       # [B, N_cam, 3, S, S] uint8
     return batch
 
 
@@ -454,7 +506,8 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     shift = augment_shift(cfg)
     resumed = _resume(cfg, out, device, main)
     ds, tasks, val = load_training_data(cfg, quiet=not main)
-    dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks)
+    dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks,
+                           getattr(ds.dataset, "images", None))
     dconf.extra["data"] = {"episodes": ds.dataset.num_episodes, "frames": ds.dataset.num_frames}   # for the model card
     torch.manual_seed(cfg.seed)
     policy = ActionDecoderPolicy(dconf, ds.stats).to(device)

@@ -62,6 +62,14 @@ class ActionDecoderConfig(PreTrainedConfig):
     num_hidden_layers: int = 3
     num_attention_heads: int = 4
     num_key_value_heads: int = 2
+    # Cameras (`observation.images.*` input features): frames resized to image_size², encoded by the
+    # core's image encoder ("conv" or "resnet18" with GroupNorm; a pretrained one from a directory or Hub id).
+    image_size: int = 64
+    image_encoder: str = "conv"
+    image_tokens_per_camera: int = 4
+    image_encoder_pretrained: str | None = None
+    freeze_image_encoder: bool = False
+    image_shift: int = 4
     # Task strings, by task index (filled from the dataset).
     tasks: list[str] = field(default_factory=list)
 

@@ -1,9 +1,11 @@
 """The LeRobot ↔ action_decoder boundary, in plain torch (no LeRobot import, testable without it).
 
 LeRobot names a batch `observation.state` [B, S], `action` [B, H, D] with `action_is_pad`
-[B, H] and `task` (one string per row); the core policy reads `state`, `actions` and, when it
-was trained on several tasks, a one-hot task token `context` [B, 1, T]. `decoder_config`
-maps the plugin's config (any object with its attribute names) to a core `DecoderConfig`.
+[B, H], `task` (one string per row) and camera frames `observation.images.<name>` [B, 3, H, W]
+(float in [0, 1]); the core policy reads `state`, `actions`, `images` [B, N_cam, 3, S, S] (the
+cameras stacked in the config's order, resized to `image_size`) and, when it was trained on
+several tasks, a one-hot task token `context` [B, 1, T]. `decoder_config` maps the plugin's
+config (any object with its attribute names) to a core `DecoderConfig`.
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from __future__ import annotations
 from typing import Any, Mapping, Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from action_decoder import DecoderConfig
+from action_decoder.config import CAMERA_PREFIX
 from action_decoder.train import DEFAULT_STEPS  # sampling steps when num_inference_steps is None
 
 STATE, ACTION, PAD, TASK = "observation.state", "action", "action_is_pad", "task"
@@ -24,7 +28,9 @@ SHARED = ("decoder_type", "n_action_steps", "flow_sde_num_steps", "num_train_tim
           "beta_schedule", "clip_sample", "flow_sde_use", "flow_sde_mode", "flow_sde_s_churn",
           "flow_sde_learn_sigma", "flow_sde_sigma_init", "flow_sde_return_logprob", "flow_sde_logprob_sigma_only",
           "meanflow_sde_velocity", "meanflow_ratio_r_neq_t", "meanflow_time_dist", "meanflow_adaptive_p",
-          "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads")
+          "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads",
+          "image_size", "image_encoder", "image_tokens_per_camera", "image_encoder_pretrained",
+          "freeze_image_encoder", "image_shift")
 
 
 def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str, Any]) -> tuple[int, int]:
@@ -41,9 +47,15 @@ def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str
     return dims[0], dims[1]
 
 
+def camera_keys(input_features: Mapping[str, Any]) -> list[str]:
+    """The camera inputs (`observation.images.<name>`), in the order of `input_features`: the order
+    in which the policy stacks them."""
+    return [k for k in (input_features or {}) if k.startswith(CAMERA_PREFIX)]
+
+
 def unused_inputs(input_features: Mapping[str, Any]) -> list[str]:
-    """Input keys the decoder does not read (cameras, environment state): all but `observation.state`."""
-    return sorted(k for k in (input_features or {}) if k != STATE)
+    """Input keys the decoder does not read (environment state, ...): all but the state and the cameras."""
+    return sorted(k for k in (input_features or {}) if k != STATE and not k.startswith(CAMERA_PREFIX))
 
 
 def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
@@ -51,11 +63,11 @@ def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
     if not keys:
         return None
     return (f"action_decoder: not using input(s) {list(keys)}; the policy conditions on {STATE!r} and the task "
-            f"string only. To condition on them, encode them into context tokens of the core policy "
+            f"string and cameras only. To condition on them, encode them into context tokens of the core policy "
             f"(action_decoder.DecoderConfig.context_dim, batch['context'] [B, L, C])")
 
 
-def decoder_config(cfg: Any, state_dim: int, action_dim: int) -> DecoderConfig:
+def decoder_config(cfg: Any, state_dim: int, action_dim: int, cameras: Sequence[str] = ()) -> DecoderConfig:
     """The core `DecoderConfig` of a plugin config.
 
     Normalisation is `identity`: LeRobot's processors normalise before the policy and
@@ -63,6 +75,7 @@ def decoder_config(cfg: Any, state_dim: int, action_dim: int) -> DecoderConfig:
     and `flow_prediction=None` take what `action-decoder train` takes (MeanFlow: 1 step and
     the clean-chunk head; DDPM and flow matching: 10 steps and GO-1's velocity head). With
     two or more `tasks` the task is a one-hot context token of width len(tasks).
+    `cameras` (`camera_keys` of the input features) go through the core's image encoder.
     A bad value raises the core's ValueError with the plugin's field name (`policy.<name>`).
     """
     tasks = [str(t) for t in (getattr(cfg, "tasks", None) or [])]
@@ -74,6 +87,7 @@ def decoder_config(cfg: Any, state_dim: int, action_dim: int) -> DecoderConfig:
     values["flow_prediction"] = pred or ("sample" if cfg.decoder_type == "mean_flow" else "velocity")
     try:
         return DecoderConfig(**values, state_dim=state_dim, action_dim=action_dim, normalization_mode="identity",
+                             cameras=tuple(cameras),
                              context_dim=len(tasks) if len(tasks) > 1 else None,
                              extra={"tasks": tasks, "lerobot_policy": "action_decoder"})
     except ValueError as err:
@@ -130,10 +144,31 @@ def hold_last_action(actions: Tensor, is_pad: Optional[Tensor]) -> Tensor:
     return torch.where(real[..., None], actions, held)
 
 
+def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: int, batch_size: int) -> Tensor:
+    """LeRobot camera frames `batch[key]` [B, 3, H, W] (or [B, 1, 3, H, W]) float in [0, 1] → `images`
+    [B, N_cam, 3, S, S], stacked in `cameras` order, resized (bilinear, antialiased) to S = `image_size`."""
+    frames = []
+    for key in cameras:
+        x = batch.get(key)
+        if isinstance(x, Tensor) and x.dim() == 5 and x.shape[1] == 1:
+            x = x[:, 0]                                                                   # [B, 1, 3, H, W] -> [B, 3, H, W]
+        if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[0] != batch_size or x.shape[1] != 3:
+            got = list(x.shape) if isinstance(x, Tensor) else ("nothing" if x is None else type(x).__name__)
+            raise ValueError(f"batch[{key!r}]: expected camera frames of shape [{batch_size}, 3, H, W] (float in "
+                             f"[0, 1]), got {got}")
+        x = x.float() / 255.0 if not x.is_floating_point() else x.float()
+        if tuple(x.shape[-2:]) != (image_size, image_size):
+            x = F.interpolate(x, size=(image_size, image_size), mode="bilinear", antialias=True,
+                              align_corners=False).clamp(0.0, 1.0)
+        frames.append(x)
+    return torch.stack(frames, dim=1)                                                     # [B, N_cam, 3, S, S]
+
+
 def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int,
-                  with_actions: bool) -> dict:
+                  with_actions: bool, cameras: Sequence[str] = (), image_size: int = 64) -> dict:
     """LeRobot batch → core batch: `state` [B, S], `actions` [B, H, D] (padding held at the last
-    real action) when `with_actions`, and the task token `context` [B, 1, T] for multi-task."""
+    real action) when `with_actions`, `images` [B, N_cam, 3, S, S] for a camera policy
+    (`camera_batch`), and the task token `context` [B, 1, T] for multi-task."""
     state = batch.get(STATE)
     if not isinstance(state, Tensor):
         raise ValueError(f"batch[{STATE!r}]: missing; expected a tensor of shape [B, {state_dim}], got "
@@ -150,6 +185,8 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
             raise ValueError(f"batch[{ACTION!r}]: expected an action chunk of shape [B, H, D] (action_delta_indices "
                              f"give H steps), got {got}")
         out["actions"] = hold_last_action(actions, batch.get(PAD))
+    if cameras:
+        out["images"] = camera_batch(batch, cameras, image_size, state.shape[0])
     context = task_token(batch.get(TASK), tasks, state.shape[0], state.device)
     if context is not None:
         out["context"] = context

@@ -3,8 +3,9 @@
 The batch arrives normalised by LeRobot's preprocessor and the actions leave normalised for
 its postprocessor, so the core policy is built with `normalization_mode="identity"`. Keys
 are converted at the boundary (`convert.to_core_batch`): `observation.state` → `state`,
-`action` → `actions` (padded steps hold the last real action), task strings → the one-hot
-task token of a multi-task policy.
+`action` → `actions` (padded steps hold the last real action), `observation.images.*` →
+`images` (the core's image encoder; cameras in `input_features` order, resized to
+`image_size`), task strings → the one-hot task token of a multi-task policy.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from action_decoder import PolicyOutput
 from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .configuration_action_decoder import ActionDecoderConfig
-from .convert import decoder_config, feature_dims, task_list, to_core_batch, unused_inputs, unused_inputs_message
+from .convert import camera_keys, decoder_config, feature_dims, task_list, to_core_batch, unused_inputs, unused_inputs_message
 
 
 class ActionDecoderPolicy(PreTrainedPolicy):
@@ -46,10 +47,12 @@ class ActionDecoderPolicy(PreTrainedPolicy):
         message = unused_inputs_message(unused_inputs(config.input_features))
         if message:
             logging.warning(message)
-        self.decoder = CorePolicy(decoder_config(config, self.state_dim, action_dim))
+        self.cameras = camera_keys(config.input_features)
+        self.decoder = CorePolicy(decoder_config(config, self.state_dim, action_dim, self.cameras))
 
     def _core(self, batch: dict[str, Any], with_actions: bool) -> dict:
-        return to_core_batch(batch, self.config.tasks, self.state_dim, with_actions)
+        return to_core_batch(batch, self.config.tasks, self.state_dim, with_actions, self.cameras,
+                             self.config.image_size)
 
     def get_optim_params(self) -> list:
         return [p for p in self.parameters() if p.requires_grad]

@@ -30,7 +30,8 @@ It may also take keywords ``episode_seeds [B]`` (each row's episode seed) and ``
 (0 for an episode's first plan, then 1, 2, ...), or ``**kwargs``: then it is given both. With
 ``rtc=True`` it must take ``prev_chunks [B, L, D]`` and ``delay`` (real-time chunking): the rows
 that continue an episode are then planned in their own call, given the previous chunk's actions
-for the new chunk's steps 0..L−1."""
+for the new chunk's steps 0..L−1. With a ``camera_rig`` it must take ``images`` [B, N_cam, 3, S, S]
+uint8: each planning row's env rendered at the observation it plans from, cameras in the rig's order."""
 
 
 def _takes_episode_keys(policy_fn: PolicyFn) -> bool:
@@ -42,12 +43,21 @@ def _takes_episode_keys(policy_fn: PolicyFn) -> bool:
         {"episode_seeds", "plan_indices"} <= {p.name for p in params}
 
 
-def _takes_rtc_keys(policy_fn: PolicyFn) -> bool:
+def _takes_keys(policy_fn: PolicyFn, names: set) -> bool:
     try:
         params = inspect.signature(policy_fn).parameters.values()
     except (TypeError, ValueError):
         return False
-    return any(p.kind is p.VAR_KEYWORD for p in params) or {"prev_chunks", "delay"} <= {p.name for p in params}
+    return any(p.kind is p.VAR_KEYWORD for p in params) or names <= {p.name for p in params}
+
+
+def _takes_rtc_keys(policy_fn: PolicyFn) -> bool:
+    return _takes_keys(policy_fn, {"prev_chunks", "delay"})
+
+
+def camera_images(frames: dict) -> np.ndarray:
+    """A rig's ``{camera: [S, S, 3] uint8}`` → [N_cam, 3, S, S] uint8, cameras in the dict's order."""
+    return np.stack([np.asarray(f).transpose(2, 0, 1) for f in frames.values()])
 
 
 def _plan(policy_fn: PolicyFn, states: np.ndarray, task_index: int, needed: int, keys: dict) -> np.ndarray:
@@ -94,6 +104,7 @@ def evaluate(
     on_step: Callable[[int, SeededLayoutEnv], None] | None = None,
     delay: int = 0,
     rtc: bool = False,
+    camera_rig: Callable[[SeededLayoutEnv], dict] | None = None,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
@@ -110,6 +121,8 @@ def evaluate(
     ``task_index`` is passed to ``policy_fn`` (multi-task policies), and so are each row's episode seed
     and plan index if it takes them (see ``PolicyFn``); ``progress(done, total, episode, success)`` is
     called after each finished episode: ``done`` finished so far, ``episode`` its index in [0, total).
+    ``camera_rig(env) -> {camera: frame [S, S, 3] uint8}`` (``envs.render.CameraObservation``; one
+    rig serves every env) renders the observation of each row that plans, passed as ``images``.
     ``record=True`` adds ``trajectories``: per episode the hand positions ``[T, 3]`` (obs[0:3]) and
     the goal (obs[36:39]). ``on_step(episode, env)`` is called after each reset and after each step
     of an episode, before the next reset of its env (``envs.render.EpisodeCamera`` films episodes so).
@@ -132,6 +145,9 @@ def evaluate(
     if rtc and not _takes_rtc_keys(policy_fn):
         raise ValueError("rtc: expected a policy_fn that takes prev_chunks and delay keywords (see PolicyFn), "
                          f"got {getattr(policy_fn, '__name__', type(policy_fn).__name__)} without them")
+    if camera_rig is not None and not _takes_keys(policy_fn, {"images"}):
+        raise ValueError("camera_rig: expected a policy_fn that takes an images keyword (see PolicyFn), "
+                         f"got {getattr(policy_fn, '__name__', type(policy_fn).__name__)} without it")
     envs = _borrow_envs(name, min(num_envs, episodes))
 
     seeds = eval_seeds(seed, episodes)
@@ -175,6 +191,8 @@ def evaluate(
                     "plan_indices": np.array([plan_count[e] for e in eps_now], dtype=np.int64)} if keyed else {}
             if rtc and group is later:
                 keys.update(prev_chunks=np.stack([chunks[s][n_action_steps:] for s in group]), delay=int(delay))
+            if camera_rig is not None:
+                keys["images"] = np.stack([camera_images(camera_rig(envs[s])) for s in group])   # [B, N, 3, S, S]
             for s, chunk in zip(group, _plan(policy_fn, obs[group], task_index, n_action_steps + delay, keys)):
                 if plans[s] is None:                          # an episode's first chunk: planned before it moves
                     plans[s] = chunk[: n_action_steps + delay]

@@ -3,5 +3,6 @@
 from .action_expert import ActionExpert
 from .attention import forward_ad_active
 from .conditioning import Prefix
+from .image_encoder import ImageEncoder
 
-__all__ = ["ActionExpert", "Prefix", "forward_ad_active"]
+__all__ = ["ActionExpert", "ImageEncoder", "Prefix", "forward_ad_active"]

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from ..config import DecoderConfig
 from .attention import ATTN_IMPLEMENTATIONS, rotary_cos_sin
 from .conditioning import ConditioningEncoder, Prefix
+from .image_encoder import ImageEncoder
 from .embeddings import FREQ_PERIODS, TIME_PERIODS, ScalarEmbedding
 from .layers import ExpertBlock, RMSNorm
 
@@ -32,7 +33,7 @@ class ActionExpert(nn.Module):
     "sdpa" or "eager" (explicit softmax always).
     """
 
-    def __init__(self, config: DecoderConfig) -> None:
+    def __init__(self, config: DecoderConfig, load_pretrained: bool = True) -> None:
         super().__init__()
         self.config = config
         hidden = config.hidden_size
@@ -44,6 +45,8 @@ class ActionExpert(nn.Module):
         self.state_in = nn.Linear(config.state_input_dim, hidden)
         self.action_in = nn.Linear(config.action_dim, hidden)
         self.conditioning = ConditioningEncoder(config)
+        # Camera frames → tokens of the prefix (`load_pretrained`: read image_encoder_pretrained now).
+        self.image_encoder = ImageEncoder(config, load_pretrained) if config.uses_cameras else None
         self.blocks = nn.ModuleList(
             ExpertBlock(hidden, config.num_attention_heads, config.num_key_value_heads, inter,
                         config.rms_norm_eps) for _ in range(config.num_hidden_layers))
@@ -74,9 +77,16 @@ class ActionExpert(nn.Module):
             block.attn.attn_implementation = value
 
     def build_prefix(self, context: Optional[Tensor] = None, context_mask: Optional[Tensor] = None,
-                     vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None) -> Optional[Prefix]:
-        """Project the conditioning once per observation; pass the result to every forward."""
-        return self.conditioning(context, context_mask, vlm_key_values, attention_mask)
+                     vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None,
+                     images: Optional[Tensor] = None) -> Optional[Prefix]:
+        """Encode and project the conditioning once per observation; pass the result to every forward.
+        `images` [B, N_cam, 3, S, S] (uint8, or float in [0, 1]) go through the image encoder."""
+        tokens = None
+        if images is not None:
+            if self.image_encoder is None:
+                raise ValueError("images: this expert was built without cameras; set DecoderConfig.cameras")
+            tokens = self.image_encoder(images)                                   # [B, N_cam·T, hidden]
+        return self.conditioning(context, context_mask, vlm_key_values, attention_mask, tokens)
 
     def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
                 ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:

@@ -1,4 +1,4 @@
-"""Conditioning prefix: context tokens and/or a VLM's per-layer KV cache, projected once
+"""Conditioning prefix: context tokens, camera tokens and/or a VLM's per-layer KV cache, projected once
 per observation into every expert layer's keys and values and reused at each denoising step.
 
 VLM layer mapping: expert layer i reads VLM layer round(i·(V−1)/(E−1)) (halves up) for E
@@ -73,8 +73,10 @@ def _key_mask(mask: Optional[Tensor], name: str, batch: int, length: int, device
 
 
 class ConditioningEncoder(nn.Module):
-    """Builds a `Prefix` from `context` [B, L, C] and/or `vlm_key_values` (per-layer K, V
-    [B, vlm_num_key_value_heads, L, vlm_head_dim]) with GO-1-style per-layer k/v projections."""
+    """Builds a `Prefix` from `context` [B, L, C], camera tokens [B, L_img, hidden_size] (from
+    `ImageEncoder`) and/or `vlm_key_values` (per-layer K, V [B, vlm_num_key_value_heads, L,
+    vlm_head_dim]) with GO-1-style per-layer k/v projections; the prefix's order is
+    [context | cameras | VLM]."""
 
     def __init__(self, config: DecoderConfig) -> None:
         super().__init__()
@@ -88,6 +90,9 @@ class ConditioningEncoder(nn.Module):
             # Context comes from arbitrary encoders at arbitrary scale: normalise first.
             self.context_norm = RMSNorm(config.context_dim, config.rms_norm_eps)
             self.context_kv = nn.Linear(config.context_dim, self.num_layers * 2 * kv_width, bias=False)
+        if config.uses_cameras:
+            self.image_norm = RMSNorm(config.hidden_size, config.rms_norm_eps)
+            self.image_kv = nn.Linear(config.hidden_size, self.num_layers * 2 * kv_width, bias=False)
         if config.uses_vlm_cache:
             vlm_width = config.vlm_num_key_value_heads * config.vlm_head_dim
             self.vlm_k_proj = nn.ModuleList(nn.Linear(vlm_width, kv_width, bias=False)
@@ -98,17 +103,21 @@ class ConditioningEncoder(nn.Module):
                                          for i in range(self.num_layers))
 
     def forward(self, context: Optional[Tensor] = None, context_mask: Optional[Tensor] = None,
-                vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None) -> Optional[Prefix]:
-        """Prefix over [context tokens | VLM tokens], or None when neither is given."""
+                vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None,
+                image_tokens: Optional[Tensor] = None) -> Optional[Prefix]:
+        """Prefix over [context tokens | camera tokens | VLM tokens], or None when none is given."""
         parts = []
         if context is not None:
             parts.append(self._from_context(context, context_mask))
+        if image_tokens is not None:
+            parts.append(self._tokens_kv(self.image_kv, self.image_norm(image_tokens),
+                                         torch.ones(image_tokens.shape[:2], dtype=torch.bool, device=image_tokens.device)))
         if vlm_key_values is not None:
             parts.append(self._from_vlm(vlm_key_values, attention_mask))
         if not parts:
             return None
         if len({mask.shape[0] for _, _, mask in parts}) > 1:
-            raise ValueError(f"context, vlm_key_values: batch sizes differ "
+            raise ValueError(f"context, images, vlm_key_values: batch sizes differ "
                              f"({[mask.shape[0] for _, _, mask in parts]})")
         keys = tuple(torch.cat([p[0][i] for p in parts], dim=2) for i in range(self.num_layers))
         values = tuple(torch.cat([p[1][i] for p in parts], dim=2) for i in range(self.num_layers))
@@ -124,7 +133,12 @@ class ConditioningEncoder(nn.Module):
         mask = _key_mask(context_mask, "context_mask", b, length, context.device)   # [B, L]
         # Zero masked rows so that nothing (not even inf/NaN) leaks from them.
         context = torch.where(mask[..., None], context.to(self.context_kv.weight.dtype), 0.0)
-        kv = self.context_kv(self.context_norm(context))                          # [B, L, E·2·Hkv·d]
+        return self._tokens_kv(self.context_kv, self.context_norm(context), mask)
+
+    def _tokens_kv(self, proj: nn.Linear, tokens: Tensor, mask: Tensor):
+        """Tokens [B, L, W] → every layer's keys and values [B, Hkv, L, d] through one projection."""
+        b, length, _ = tokens.shape
+        kv = proj(tokens.to(proj.weight.dtype))                                   # [B, L, E·2·Hkv·d]
         kv = kv.view(b, length, self.num_layers, 2, self.num_kv_heads, self.head_dim)
         kv = kv.permute(2, 3, 0, 4, 1, 5)                                         # [E, 2, B, Hkv, L, d]
         return tuple(kv[:, 0]), tuple(kv[:, 1]), mask
