@@ -29,7 +29,8 @@ def image_hw(image_size, field: str = "image_size") -> tuple[int, int] | None:
     """``(H, W)`` from an int (square) or a pair, None for None (native size)."""
     if image_size is None:
         return None
-    pair = (image_size, image_size) if isinstance(image_size, (int, np.integer)) else tuple(image_size)
+    pair = (image_size, image_size) if isinstance(image_size, (int, np.integer)) else \
+        tuple(image_size) if isinstance(image_size, (tuple, list)) else ()
     if len(pair) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in pair):
         raise ValueError(f"{field}: expected a positive int or (height, width) of positive ints, got {image_size!r}")
     return int(pair[0]), int(pair[1])

@@ -3,10 +3,13 @@
     python tests/data/lerobot/make_v30_cams.py tests/data/lerobot/v30_cams
 
 Three episodes (12, 9 and 14 frames), fps 10, two video cameras of 32×32 encoded by LeRobot's
-default codec (AV1, libsvtav1). Every frame says which episode and frame it is, so a reader's
-alignment can be checked from the pixels alone (`frame_image` is the generator the tests share):
-a grey background whose level encodes the episode, and an 8×8 white square in the cell
-``frame_index`` of a 4×4 grid (row by row; the wrist camera mirrors the column).
+default codec (AV1, libsvtav1, crf 30). Every frame says which episode and frame it is, so a
+reader's alignment can be checked from the pixels alone (`frame_image` is the generator the tests
+share): the grey level of the background encodes the frame (top: 10 + 12·frame, wrist:
+180 − 12·frame) and an 8×8 near-white square in row 1 of a 4×4 grid of cells the episode (column
+= episode; the wrist camera mirrors it). A square that jumps from cell to cell with the frame does
+not survive LeRobot's AV1 settings at this size (some P-frames keep the previous position), a
+background level does (within 2 levels).
 ``observation.state`` is ``[episode, frame, 0, 0]``, ``action`` ``[frame / 10, -episode]``.
 """
 
@@ -22,10 +25,9 @@ SIZE, CELL, FPS = 32, 8, 10
 def frame_image(camera: str, episode: int, frame: int) -> np.ndarray:
     """[32, 32, 3] uint8 of ``camera`` at ``frame`` of ``episode``."""
     wrist = camera.endswith("wrist")
-    image = np.full((SIZE, SIZE, 3), (150 - 60 * episode) if wrist else (30 + 60 * episode), np.uint8)
-    row, col = divmod(frame, SIZE // CELL)
-    col = SIZE // CELL - 1 - col if wrist else col
-    image[row * CELL:(row + 1) * CELL, col * CELL:(col + 1) * CELL] = 255
+    image = np.full((SIZE, SIZE, 3), (180 - 12 * frame) if wrist else (10 + 12 * frame), np.uint8)
+    col = SIZE // CELL - 1 - episode if wrist else episode
+    image[CELL:2 * CELL, col * CELL:(col + 1) * CELL] = 250
     return image
 
 
