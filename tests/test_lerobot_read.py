@@ -234,17 +234,20 @@ def test_closed_loop_evaluation_only_for_a_dataset_naming_its_environment(tmp_pa
     assert "validation" not in json.loads((tmp_path / "mw" / "train_log.json").read_text())
 
 
-def test_unused_camera_keys_are_named_in_one_line(tmp_path, cli_main):
-    root = _copy(V30, tmp_path)
-    features = json.loads((root / "meta" / "info.json").read_text())["features"]
-    features["observation.images.top"] = {"dtype": "video", "shape": [64, 64, 3], "names": ["height", "width", "channel"]}
-    _edit_info(root, features=features)
-    code, out, err = cli_main(_train_args(root, tmp_path / "o", "--steps", "2"))
+def test_train_loads_the_cameras_it_is_given_and_names_them_in_one_line(tmp_path, cli_main):
+    cams = DATA / "v30_cams"
+    code, out, err = cli_main(_train_args(cams, tmp_path / "o", "--steps", "2", "--cameras", "observation.images.wrist",
+                                          "--image-size", "16"))
     assert code == 0, err
-    lines = [line for line in out.splitlines() if "observation.images.top" in line]
-    assert len(lines) == 1 and lines[0].startswith("cameras: not used: observation.images.top;")
-    assert "Python API" in lines[0] and "not available yet" in lines[0]
-    code, out, _ = cli_main(_train_args(V30, tmp_path / "p", "--steps", "2"))
+    lines = [line for line in out.splitlines() if line.startswith("cameras:")]
+    assert lines == ["cameras: observation.images.wrist (16x16 px, decoded once: 0.0 MiB)"]
+    train, _, val = load_training_data(TrainConfig(dataset=str(cams), image_size=16), quiet=True)
+    assert train.dataset.cameras == ["observation.images.top", "observation.images.wrist"]      # default: all
+    assert train[0]["images"].shape == (2, 3, 16, 16) and val[0]["images"].shape == (2, 3, 16, 16)
+    code, out, err = cli_main(_train_args(cams, tmp_path / "p", "--steps", "2", "--cameras", "top"))
+    assert code == 2 and err.count("\n") == 1 and err.startswith("action-decoder: error: cameras:")
+    assert "observation.images.top, observation.images.wrist" in err and "['top']" in err
+    code, out, _ = cli_main(_train_args(V30, tmp_path / "q", "--steps", "2"))
     assert code == 0 and "cameras:" not in out
 
 

@@ -21,6 +21,9 @@ FEATURES = [("expert/attention.py", "enable_gqa=True", "torch", (2, 5)),
             ("expert/conditioning.py", '"layers"', "transformers", (4, 54))]    # Cache.layers[i].keys
 
 
+DISTRIBUTIONS = {"PIL": "pillow"}   # import name -> distribution name, where they differ
+
+
 def _name(req: str) -> str:
     return re.split(r"[<>=!~\[;\s]", req, maxsplit=1)[0].lower()
 
@@ -46,6 +49,7 @@ def _imports(*roots: Path) -> set:
                 elif (isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "importorskip"
                       and node.args and isinstance(node.args[0], ast.Constant)):
                     found.add(node.args[0].value.split(".")[0])          # pytest.importorskip("x")
+    found = {DISTRIBUTIONS.get(name, name) for name in found}
     return found - set(sys.stdlib_module_names) - {"action_decoder", "benchmarks", "conftest"}
 
 

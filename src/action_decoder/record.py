@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 
 @dataclass
@@ -24,6 +25,11 @@ class RecordConfig:
     action_noise: float = 0.0
     """DART recording: std of the Gaussian added to each executed action (the recorded action stays the
     expert's); > 0 also stores the expert's clean next actions per frame as ``action.continuation``."""
+    cameras: Optional[list[str]] = None
+    """Meta-World cameras to render at every observation (e.g. corner2, or corner2,corner), stored as
+    the video features observation.images.<camera>. None: no pixels."""
+    image_size: int = 64
+    """Rendered frames are image_size × image_size pixels."""
 
 
 def run_record(cfg: RecordConfig) -> Path:
@@ -32,8 +38,14 @@ def run_record(cfg: RecordConfig) -> Path:
 
     if isinstance(cfg.demos, bool) or not isinstance(cfg.demos, int) or cfg.demos < 1:
         raise ValueError(f"--demos: expected an integer >= 1 (demonstrations per task), got {cfg.demos!r}")
-    root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise)
+    if isinstance(cfg.image_size, bool) or not isinstance(cfg.image_size, int) or cfg.image_size < 8:
+        raise ValueError(f"--image-size: expected an integer >= 8 (pixels), got {cfg.image_size!r}")
+    root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
+                        image_size=cfg.image_size)
     info = json.loads((root / "meta" / "info.json").read_text())
+    cameras = [k for k, v in info["features"].items() if v.get("dtype") == "video"]
     print(f"recorded {info['total_episodes']} demonstrations ({info['total_frames']} frames, {info['total_tasks']} "
-          f"task(s), fps {info['fps']}) as a LeRobot v3.0 dataset in {root}", flush=True)
+          f"task(s), fps {info['fps']}"
+          + (f", cameras {', '.join(cameras)} at {cfg.image_size}x{cfg.image_size} px" if cameras else "")
+          + f") as a LeRobot v3.0 dataset in {root}", flush=True)
     return root

@@ -39,6 +39,12 @@ class TrainConfig:
     """Meta-World task(s): a name, a comma-separated list, or a group (MT10, medium, hard, very_hard)."""
     dataset: Optional[str] = None
     """Train on this LeRobot-layout dataset directory instead of generating demonstrations."""
+    cameras: Optional[list[str]] = None
+    """Camera observations: with --dataset, its camera feature keys (e.g. observation.images.top;
+    None: all of them); with generated Meta-World demonstrations, Meta-World cameras to render
+    (e.g. corner2; None: none)."""
+    image_size: int = 64
+    """Camera frames are resized to image_size × image_size pixels (rendered at that size on Meta-World)."""
     decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "flow_matching"
     """flow_matching (sampled with 10 Euler steps) is the default: at this command's own budget
     (1500 steps, 10 demonstrations) it reached about 63 % success on five hard Meta-World tasks
@@ -170,24 +176,21 @@ def held_out_count(num_episodes: int, fraction: float) -> int:
 
 def load_training_data(cfg: TrainConfig, quiet: bool = False):
     """(ChunkDataset, task names, held-out ChunkDataset or None) from `--dataset` or generated
-    Meta-World demonstrations. A dataset's camera features are named in one line (not used), and its
-    last episodes are held out (`held_out_count`) unless it names an environment (`closed_loop_env`);
-    statistics come from the training episodes alone."""
+    Meta-World demonstrations, with the frames of `--cameras` at `--image-size` (named in one line).
+    A dataset's last episodes are held out (`held_out_count`) unless it names an environment
+    (`closed_loop_env`); statistics come from the training episodes alone."""
     from .data import ChunkDataset, load_dataset, load_demos
-    from .data.lerobot_format import camera_keys, read_info
 
     if cfg.dataset is None:
         if not quiet:
             print(f"demonstrations: {cfg.demos} per task of {cfg.task} (cached after the first run)", flush=True)
-        episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg))
+        episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg), cameras=cfg.cameras,
+                              image_size=cfg.image_size)
+        _say_cameras(episodes, quiet)
         return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks), None
-    episodes = load_dataset(cfg.dataset)
-    cameras = camera_keys(read_info(cfg.dataset))
-    if cameras and not quiet:
-        print(f"cameras: not used: {', '.join(cameras)}; training conditions on observation.state only. To use "
-              f"them, encode the frames with a vision model and pass the features as \"context\" tokens or a "
-              f"\"vlm_key_values\" cache to ActionDecoderPolicy through the Python API (image conditioning "
-              f"from the CLI is not available yet)", flush=True)
+    cameras = None if cfg.cameras is None else [c for item in cfg.cameras for c in item.split(",") if c]
+    episodes = load_dataset(cfg.dataset, cameras, cfg.image_size)
+    _say_cameras(episodes, quiet)
     n = episodes.num_episodes
     env = closed_loop_env(cfg)
     held = 0 if env else held_out_count(n, cfg.val_fraction)
@@ -202,6 +205,13 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
         print(f"validation: holding out the last {held} of {n} episodes (ids {val_eps.episode_ids.tolist()}; "
               f"--val-fraction {cfg.val_fraction}); training on {n - held}", flush=True)
     return ChunkDataset(train_eps, cfg.horizon), list(episodes.tasks), ChunkDataset(val_eps, cfg.horizon)
+
+
+def _say_cameras(episodes, quiet: bool) -> None:
+    if episodes.images and not quiet:
+        size = next(iter(episodes.images.values())).shape[1:3]
+        print(f"cameras: {', '.join(episodes.cameras)} ({size[0]}x{size[1]} px, decoded once: "
+              f"{sum(v.nbytes for v in episodes.images.values()) / 2**20:.1f} MiB)", flush=True)
 
 
 VAL_NOISE_DRAWS, VAL_SEED, VAL_BATCH = 8, 0, 256
@@ -425,7 +435,8 @@ def plot_losses(history: list, path: Path, title: str) -> None:
 
 # ---------------------------------------------------------------------- the loop
 def _check(cfg: TrainConfig) -> None:
-    for name in ("steps", "demos", "batch_size", "horizon", "n_action_steps", "checkpoint_every", "log_every"):
+    for name in ("steps", "demos", "batch_size", "horizon", "n_action_steps", "checkpoint_every", "log_every",
+                 "image_size"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
     if cfg.eval_episodes < 0 or cfg.inference_steps < 0:

@@ -18,7 +18,9 @@ from .episodes import CONTINUATION, EpisodeDataset
 
 
 class ChunkDataset(Dataset):
-    """``{"state": [S], "actions": [H, D], "action_is_pad": [H] bool, "task_index": int}`` per frame.
+    """``{"state": [S], "actions": [H, D], "action_is_pad": [H] bool, "task_index": int}`` per frame,
+    and ``"images"``: uint8 ``[N_cam, 3, H_img, W_img]`` (channel-first, cameras in the dataset's
+    order) of the frame the chunk starts at, when the dataset has cameras.
 
     ``episodes`` keeps the first k episodes (an int) or those at given positions, e.g. for
     demo-count experiments; for several tasks pass ``concat_datasets([...])``.
@@ -38,6 +40,7 @@ class ChunkDataset(Dataset):
                 raise ValueError(f"horizon: expected at most the {dataset.continuations.shape[1]} actions the "
                                  f"dataset's {CONTINUATION} holds per frame, got {horizon}")
             self.continuations = torch.from_numpy(dataset.continuations[:, :horizon])   # [N, H, D]
+        self.images = [torch.from_numpy(v) for v in (dataset.images or {}).values()]   # N_cam × [N, H, W, 3]
         self.task_index = dataset.task_index.tolist()
         ends = dataset.episode_starts + dataset.episode_lengths - 1
         self.last_frame = torch.from_numpy(np.repeat(ends, dataset.episode_lengths))
@@ -59,13 +62,13 @@ class ChunkDataset(Dataset):
             raise IndexError(f"index {i} out of range for {len(self)} frames")
         i = i % len(self)
         if self.continuations is not None:
-            return {"state": self.states[i], "actions": self.continuations[i],
+            item = {"state": self.states[i], "actions": self.continuations[i],
                     "action_is_pad": torch.zeros(self.horizon, dtype=torch.bool), "task_index": self.task_index[i]}
-        wanted = i + self.offsets
-        last = self.last_frame[i]
-        return {
-            "state": self.states[i],
-            "actions": self.actions[torch.clamp(wanted, max=last)],
-            "action_is_pad": wanted > last,
-            "task_index": self.task_index[i],
-        }
+        else:
+            wanted = i + self.offsets
+            last = self.last_frame[i]
+            item = {"state": self.states[i], "actions": self.actions[torch.clamp(wanted, max=last)],
+                    "action_is_pad": wanted > last, "task_index": self.task_index[i]}
+        if self.images:
+            item["images"] = torch.stack([frames[i] for frames in self.images]).permute(0, 3, 1, 2)  # [N_cam, 3, H, W]
+        return item

@@ -15,10 +15,15 @@ after the chunk's first state, which no policy can predict. So each noisy frame 
 the clean expert's own next ``LOOKAHEAD`` actions from that state (``action.continuation``,
 simulated from a saved MuJoCo state and rewound), and chunks are cut from those
 (docs/benchmarks/metaworld_bc.md).
+
+``cameras`` records pixels too: the named Meta-World cameras (corner2, corner, topview, ...) are
+rendered offscreen at every observation (after reset and after each action, aligned with the
+states), ``image_size``² pixels, stored as the video features ``observation.images.<camera>``.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import json
 import math
@@ -39,6 +44,30 @@ POST_SUCCESS_STEPS = 10
 LOOKAHEAD = 32
 """Clean expert actions stored per noisy frame: enough for chunks of up to 32 actions."""
 CACHE_ENV_VAR = "ACTION_DECODER_CACHE"
+IMAGE_PREFIX = "observation.images."
+
+
+@functools.cache
+def _rendering() -> str:
+    """``MUJOCO_GL``, checked once per process (`check_rendering`), before metaworld imports mujoco."""
+    from ..envs.render import check_rendering
+
+    return check_rendering()
+
+
+def camera_names(cameras, field: str = "--cameras") -> list[str]:
+    """Meta-World camera names from ``cameras`` (a list; items may be comma-separated, and may carry
+    the feature prefix ``observation.images.``); [] for None."""
+    if cameras is None:
+        return []
+    if isinstance(cameras, str) or not all(isinstance(c, str) for c in cameras):
+        raise ValueError(f"{field}: expected a list of Meta-World camera names (e.g. corner2), got {cameras!r}")
+    names = [c.strip().removeprefix(IMAGE_PREFIX) for item in cameras for c in item.split(",") if c.strip()]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{field}: expected distinct camera names, got {names}")
+    if names:
+        _rendering()               # MUJOCO_GL binds at mujoco's import, which metaworld's brings
+    return names
 
 
 def cache_root() -> Path:
@@ -97,18 +126,22 @@ def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
     return np.stack(actions + [actions[-1]] * (LOOKAHEAD - len(actions)))
 
 
-def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
+def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None) -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
     the executed action is perturbed (noise drawn from ``seed``), the recorded one is not, and
-    each frame keeps the clean continuation."""
+    each frame keeps the clean continuation. ``rig`` (`envs.render.CameraObservation`) adds the
+    frames of its cameras at every recorded state."""
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
     obs = env.reset(seed=seed)[0]
     noise = np.random.default_rng(seed)
     states, actions, continuations, rewards, successes, first_success = [], [], [], [], [], None
+    frames: dict[str, list[np.ndarray]] = {}
     while len(actions) < MAX_EPISODE_STEPS:
         action = expert(obs)                                                   # [D], in [-1, 1]
         states.append(obs.astype(np.float32))
+        for camera, frame in (rig(env) if rig is not None else {}).items():   # [S, S, 3] uint8
+            frames.setdefault(IMAGE_PREFIX + camera, []).append(frame)
         actions.append(action)
         if action_noise > 0:
             continuations.append(_continuation(env, expert, action))          # [LOOKAHEAD, D]
@@ -124,16 +157,22 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0) -> dict | None:
         return None
     episode = {STATE: np.stack(states), ACTION: np.stack(actions), "task_index": 0,
                "next.reward": np.asarray(rewards), "next.success": np.asarray(successes), "seed": seed}
+    if frames:
+        episode["images"] = {k: np.stack(v) for k, v in frames.items()}               # [L, S, S, 3]
     return {**episode, CONTINUATION: np.stack(continuations)} if continuations else episode
 
 
 def record_episodes(
-    task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0
+    task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0,
+    cameras: list[str] | None = None, image_size: int = 64,
 ) -> tuple[list[dict], float, dict]:
     """Roll out the scripted expert of ``task`` until ``num_episodes`` succeed: the episodes (the
-    dicts ``write_episodes`` takes, ``task_index`` 0), the env's fps and a ``source`` record (env,
-    versions, seed, first layout, attempts, expert success rate, noise)."""
+    dicts ``write_episodes`` takes, ``task_index`` 0, ``images`` of ``cameras`` at ``image_size``²
+    when given), the env's fps and a ``source`` record (env, versions, seed, first layout,
+    attempts, expert success rate, noise)."""
+    cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import SEED_STRIDE, canonical_task, demo_seeds, expert_policy, make_env
+    from ..envs.render import CameraObservation
 
     name = canonical_task(task)
     if not isinstance(num_episodes, (int, np.integer)) or num_episodes < 1:
@@ -149,14 +188,19 @@ def record_episodes(
                          f"per seed ({max_attempts_factor:g} attempts each within the seed's {SEED_STRIDE} layouts), "
                          f"got {num_episodes}")
     seeds = demo_seeds(seed, attempts)
+    rig = CameraObservation(cameras, image_size, "--cameras") if cameras else None
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
-    for attempt, layout_seed in enumerate(seeds, start=1):
-        episode = _rollout(env, expert, layout_seed, action_noise)
-        if episode is not None:
-            episodes.append(episode)
-        if len(episodes) == num_episodes:
-            break
-    env.close()
+    try:
+        for attempt, layout_seed in enumerate(seeds, start=1):
+            episode = _rollout(env, expert, layout_seed, action_noise, rig)
+            if episode is not None:
+                episodes.append(episode)
+            if len(episodes) == num_episodes:
+                break
+    finally:
+        if rig is not None:
+            rig.close()
+        env.close()
     if len(episodes) < num_episodes:
         raise RuntimeError(
             f"{name}: the scripted expert succeeded in {len(episodes)} of {len(seeds)} attempts, fewer than "
@@ -165,7 +209,8 @@ def record_episodes(
         )
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
-              "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise}
+              "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise,
+              **({"cameras": cameras, "image_size": image_size} if cameras else {})}
     return episodes, round(1.0 / env.unwrapped.dt, 6), source
 
 
@@ -176,24 +221,28 @@ def generate_demos(
     max_attempts_factor: float = 3.0,
     cache_dir: str | Path | None = None,
     action_noise: float = 0.0,
+    cameras: list[str] | None = None,
+    image_size: int = 64,
 ) -> Path:
     """Directory holding ``num_episodes`` successful expert episodes of ``task`` as a LeRobot v3.0
     dataset, recorded with ``action_noise`` (std of the Gaussian added to each executed action;
-    0: clean rollouts).
+    0: clean rollouts) and with the frames of ``cameras`` (Meta-World names) at ``image_size``².
 
-    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>]`` when complete. A complete cache in
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>][-cam<a+b>-px<size>]`` when complete. A complete cache in
     the older v2.0 layout is converted in place (same episodes, no simulator run), saying so in one
     line; anything else is recorded anew. New datasets are written into a temporary sibling and
     renamed into place (concurrent runs never see a partial dataset). Raises RuntimeError if
     ``ceil(N * max_attempts_factor)`` attempts do not yield N successes.
     """
+    cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import canonical_task, demo_seeds
 
     name = canonical_task(task)
     if not (isinstance(action_noise, (int, float)) and 0 <= action_noise <= 1):
         raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
                          f"got {action_noise!r}")
-    suffix = f"-dart{action_noise:g}" if action_noise > 0 else ""
+    suffix = (f"-dart{action_noise:g}" if action_noise > 0 else "") + \
+        (f"-cam{'+'.join(cameras)}-px{image_size}" if cameras else "")
     final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
     state = _cache_state(final, num_episodes, demo_seeds(seed, 1)[0]) if isinstance(num_episodes, (int, np.integer)) else "missing"
     if state == "complete":
@@ -207,7 +256,8 @@ def generate_demos(
                   f"recording it anew", flush=True)
             state = "missing"
     if state != "v2.0":
-        episodes, fps, source = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise)
+        episodes, fps, source = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
+                                                cameras, image_size)
         tasks, extra = [name], {"robot_type": "sawyer", "env": "metaworld", "source": source}
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
@@ -217,12 +267,14 @@ def generate_demos(
 
 
 def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int = 0, action_noise: float = 0.0,
-                 max_attempts_factor: float = 3.0) -> Path:
+                 max_attempts_factor: float = 3.0, cameras: list[str] | None = None, image_size: int = 64) -> Path:
     """Record ``num_episodes`` expert demonstrations of every task in ``spec`` (``metaworld/<task>``,
     comma-separated or a group) into one LeRobot v3.0 dataset at ``output_dir``, with the
     Meta-World task names as task strings (``task_index`` in the order of ``resolve_tasks``) and
-    ``"env": "metaworld"`` in ``info.json``. ``output_dir`` must be new or empty: an existing
-    dataset is never overwritten."""
+    ``"env": "metaworld"`` in ``info.json``; ``cameras`` (Meta-World names) add their frames at
+    ``image_size``² as video features ``observation.images.<camera>``. ``output_dir`` must be new
+    or empty: an existing dataset is never overwritten."""
+    cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import resolve_tasks
 
     out = Path(output_dir).expanduser()
@@ -230,16 +282,22 @@ def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int
         raise ValueError(f"--output-dir: expected a new or empty directory, got {out} (not empty)")
     names, episodes, sources = resolve_tasks(spec), [], {}
     for i, name in enumerate(names):
-        eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise)
+        eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
+                                                  cameras, image_size)
         episodes += [{**ep, "task_index": i} for ep in eps]
     source = sources[names[0]] if len(names) == 1 else {"env": "metaworld", "tasks": sources}
     return write_episodes(out, episodes, names, fps, {"robot_type": "sawyer", "env": "metaworld", "source": source})
 
 
-def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0) -> EpisodeDataset:
+def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0,
+               cameras: list[str] | None = None, image_size: int = 64) -> EpisodeDataset:
     """Expert demonstrations of every task in ``spec`` (generated or cached), concatenated;
-    ``task_index`` follows the order of ``resolve_tasks(spec)``."""
+    ``task_index`` follows the order of ``resolve_tasks(spec)``. ``cameras`` (Meta-World names, e.g.
+    ``["corner2"]``; None: none) adds ``images`` ``observation.images.<camera>`` of ``image_size``²."""
+    cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import resolve_tasks
 
-    return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed, action_noise=action_noise))
+    keys = [IMAGE_PREFIX + c for c in cameras]
+    return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed, action_noise=action_noise,
+                                                        cameras=cameras, image_size=image_size), keys)
                             for t in resolve_tasks(spec)])

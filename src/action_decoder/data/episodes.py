@@ -25,7 +25,12 @@ CONTINUATION = "action.continuation"
 class EpisodeDataset:
     """Frames ``states [N, S]``, ``actions [N, D]``, ``task_index [N]`` stored episode after
     episode; episode ``e`` spans ``episode_starts[e] : episode_starts[e] + episode_lengths[e]``.
-    ``continuations [N, K, D]``, when present, are the chunk targets (``CONTINUATION``)."""
+    ``continuations [N, K, D]``, when present, are the chunk targets (``CONTINUATION``).
+
+    ``images``, when present: camera key (``observation.images.<name>``) -> uint8 ``[N, H, W, 3]``,
+    one frame per dataset frame (the observation ``states[i]`` was recorded with), every camera at
+    one size, decoded in memory: N·H·W·3 bytes per camera (12 kB a frame at 64×64). ``cameras``
+    is their order."""
 
     states: np.ndarray
     actions: np.ndarray
@@ -37,6 +42,7 @@ class EpisodeDataset:
     root: Path | None = None
     stats: dict = field(default_factory=dict)
     continuations: np.ndarray | None = None
+    images: dict[str, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         self.states = np.ascontiguousarray(self.states, dtype=np.float32)
@@ -63,10 +69,24 @@ class EpisodeDataset:
                 f"EpisodeDataset.task_index: expected values in [0, {len(self.tasks)}) (one per task), "
                 f"got [{self.task_index.min()}, {self.task_index.max()}]"
             )
+        if self.images is not None:
+            self.images = {k: np.ascontiguousarray(v) for k, v in self.images.items()} or None
+        for key, frames in (self.images or {}).items():
+            first = next(iter(self.images.values()))
+            if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[0] != n or frames.shape[3] != 3 \
+                    or frames.shape != first.shape:
+                raise ValueError(f"EpisodeDataset.images[{key!r}]: expected uint8 [{n}, H, W, 3] (one RGB frame per "
+                                 f"dataset frame, H and W the same for every camera), got {frames.dtype} "
+                                 f"{list(frames.shape)} (first camera {list(first.shape)})")
         if self.episode_ids is None:
             self.episode_ids = np.arange(len(self.episode_lengths))
         if not self.stats:
             self.stats = compute_stats({STATE: self.states, ACTION: self.actions})
+
+    @property
+    def cameras(self) -> list[str]:
+        """The camera keys of ``images``, in order ([] without images)."""
+        return list(self.images or {})
 
     @property
     def episode_starts(self) -> np.ndarray:
@@ -93,6 +113,7 @@ class EpisodeDataset:
             self.states[frames], self.actions[frames], self.task_index[frames], self.episode_lengths[picks],
             list(self.tasks), self.fps, self.episode_ids[picks], self.root,
             continuations=None if self.continuations is None else self.continuations[frames],
+            images=None if self.images is None else {k: v[frames] for k, v in self.images.items()},
         )
 
 
@@ -108,6 +129,11 @@ def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
     if len(kinds) > 1:
         raise ValueError(f"concat_datasets: expected every dataset with {CONTINUATION} of one length, or none, "
                          f"got lengths {sorted(map(str, kinds))}")
+    cameras = {(tuple(d.cameras), None if d.images is None else next(iter(d.images.values())).shape[1:])
+               for d in datasets}
+    if len(cameras) > 1:
+        raise ValueError(f"concat_datasets: expected the same cameras at one image size in every dataset, got "
+                         f"{sorted(cameras, key=str)} (cameras, [H, W, 3])")
     tasks = list(dict.fromkeys(t for d in datasets for t in d.tasks))
     remapped = [np.asarray([tasks.index(t) for t in d.tasks], dtype=np.int64)[d.task_index] for d in datasets]
     return EpisodeDataset(
@@ -118,4 +144,6 @@ def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
         tasks,
         fps.pop(),
         continuations=None if kinds == {None} else np.concatenate([d.continuations for d in datasets]),
+        images=None if datasets[0].images is None else {k: np.concatenate([d.images[k] for d in datasets])
+                                                         for k in datasets[0].cameras},
     )

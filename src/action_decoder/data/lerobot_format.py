@@ -12,7 +12,15 @@ Reading (`load_dataset`) picks the layout from ``meta/info.json``'s ``codebase_v
 Every layout's frames come from the parquet files under ``data/`` (any names, so users' own
 recordings load too; a dataset without ``info.json`` is read this way); only
 ``observation.state``, ``action``, ``episode_index`` and ``frame_index`` are required.
-Camera features (``dtype`` "video" or "image") are listed by `camera_keys`, not loaded.
+Camera features (``dtype`` "video" or "image", listed by `camera_keys`) load as uint8 frames
+(`load_dataset`'s ``cameras`` and ``image_size``):
+
+    v3.0 video  videos/{key}/chunk-000/file-000.mp4 (``video_path``), several episodes per file; the
+                episode starts at ``videos/{key}/from_timestamp`` (a column of meta/episodes), so a
+                row's frame is at ``from_timestamp + timestamp``
+    v2.x video  ``video_path`` (videos/chunk-000/{key}/episode_000000.mp4), one file per episode
+                and camera; a row's frame is at ``timestamp``
+    image       a parquet column of LeRobot's struct {bytes: PNG, path}, one image per row
 Writing (`lerobot_write.write_episodes`) produces the v3.0 layout LeRobot ≥ 0.4 loads.
 """
 
@@ -28,6 +36,7 @@ import pyarrow.parquet as pq
 
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset
 from .stats import read_json
+from .video import decode_png, image_hw, read_frames
 
 REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
 
@@ -134,8 +143,8 @@ def _read_parquet(path: Path, expected: str, columns: list[str] | None = None) -
         raise ValueError(f"{path}: expected parquet ({expected}), got unreadable content ({err})") from None
 
 
-def _read_frames(path: Path) -> pa.Table:
-    """The columns of one data file the policy uses (camera columns are not loaded)."""
+def _read_frames(path: Path, image_keys: tuple[str, ...] = ()) -> pa.Table:
+    """The columns of one data file the policy uses, with the ``image_keys`` columns (PNG cells)."""
     try:
         names = pq.read_schema(path).names
     except (pa.ArrowException, OSError) as err:
@@ -144,12 +153,91 @@ def _read_frames(path: Path) -> pa.Table:
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {names}")
     return _read_parquet(path, "a parquet episode file",
-                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", CONTINUATION)])
+                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", "timestamp", CONTINUATION)
+                          + image_keys])
 
 
-def load_dataset(root: str | Path) -> EpisodeDataset:
+def select_cameras(info: dict, cameras, root: Path) -> list[str]:
+    """The camera keys to load: all of the dataset's for None, else ``cameras`` checked against them."""
+    available = camera_keys(info)
+    if cameras is None:
+        return available
+    if isinstance(cameras, str) or not all(isinstance(c, str) for c in cameras):
+        raise ValueError(f"cameras: expected a list of camera feature keys (of {available}), got {cameras!r}")
+    unknown = [c for c in cameras if c not in available]
+    if unknown or len(set(cameras)) != len(cameras):
+        raise ValueError(f"cameras: expected distinct camera feature keys of {root} (available: "
+                         f"{', '.join(available) or 'none'}), got {list(cameras)}")
+    return list(cameras)
+
+
+def _episode_table(root: Path) -> dict[int, dict]:
+    """v3.0 ``meta/episodes`` rows by episode index."""
+    rows = {}
+    for f in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        names = pq.read_schema(f).names
+        table = _read_parquet(f, "LeRobot episodes", [c for c in names if not c.startswith("stats/")])
+        rows.update({int(r["episode_index"]): r for r in table.to_pylist()})
+    return rows
+
+
+def _video_frames(root: Path, info: dict, version: str, key: str, episode: np.ndarray, timestamps: np.ndarray,
+                  size: tuple[int, int] | None) -> np.ndarray:
+    """Frames ``[N, H, W, 3]`` of video feature ``key`` for rows (``episode [N]``, ``timestamps [N]``),
+    each video file decoded once."""
+    template, fps = info.get("video_path"), float(info.get("fps") or 0)
+    if not template or fps <= 0:
+        raise ValueError(f"{root / 'meta' / 'info.json'}: feature {key!r} is a video; expected \"video_path\" "
+                         f"and \"fps\", got {template!r} and {info.get('fps')!r}")
+    episodes = _episode_table(root) if version in V3 else {}
+    sources: dict[Path, list[tuple[int, float]]] = {}          # video file -> [(episode, start s)]
+    for e in np.unique(episode).tolist():
+        if version in V3:
+            row = episodes.get(e, {})
+            columns = [f"videos/{key}/{c}" for c in ("chunk_index", "file_index", "from_timestamp")]
+            if any(row.get(c) is None for c in columns):
+                raise ValueError(f"{root / 'meta' / 'episodes'}: episode {e} expected columns {columns}, got none "
+                                 f"for camera {key!r}")
+            chunk, file, start = (row[c] for c in columns)
+            path = root / template.format(video_key=key, chunk_index=chunk, file_index=file)
+        else:
+            chunk, start = e // int(info.get("chunks_size") or 1000), 0.0
+            path = root / template.format(video_key=key, episode_chunk=chunk, episode_index=e)
+        sources.setdefault(path, []).append((e, float(start)))
+    out = None
+    for path, parts in sources.items():
+        rows = np.concatenate([np.flatnonzero(episode == e) for e, _ in parts])
+        shifted = np.concatenate([timestamps[episode == e] + start for e, start in parts])
+        frames = read_frames(path, shifted, fps, size)                     # [n, H, W, 3]
+        if out is None:
+            out = np.empty((len(episode), *frames.shape[1:]), np.uint8)
+        if frames.shape[1:] != out.shape[1:]:
+            raise ValueError(f"{path}: expected frames of {list(out.shape[1:])} as in the camera's other files, got "
+                             f"{list(frames.shape[1:])}; pass image_size to resize them to one size")
+        out[rows] = frames
+    return out
+
+
+def _image_column(table: pa.Table, key: str, path: Path, size: tuple[int, int] | None, root: Path) -> np.ndarray:
+    """``[rows, H, W, 3]`` from a ``dtype: image`` column (PNG bytes per row)."""
+    frames = [decode_png(cell, f"{path}: column {key!r} row {i}", size, root)
+              for i, cell in enumerate(table[key].to_pylist())]
+    shapes = {f.shape for f in frames}
+    if len(shapes) > 1:
+        raise ValueError(f"{path}: column {key!r} expected images of one size, got {sorted(shapes)}; pass "
+                         f"image_size to resize them")
+    return np.stack(frames)
+
+
+def load_dataset(root: str | Path, cameras: list[str] | None = None,
+                 image_size: int | tuple[int, int] | None = None) -> EpisodeDataset:
     """Load a LeRobot dataset (format v3.0, v2.1 or v2.0; see the module docstring): frames, episode
     boundaries, fps and task strings, validating columns, frame order and finiteness.
+
+    ``cameras``: the camera features to load (their keys, e.g. ``observation.images.top``); None
+    loads all of them, ``[]`` none. Their frames are decoded once, here, to uint8 ``[N, H, W, 3]``
+    per camera (N·H·W·3 bytes each: 12 kB a frame at 64×64), resized to ``image_size`` (``(H, W)``
+    or an int for a square; None keeps the native size, which must then agree across cameras).
 
     The same recording in v3.0 and in v2.1 loads identically. ``task_index`` defaults to 0 when
     the column is absent. Normalisation statistics are computed from the frames (mean, std floored,
@@ -163,18 +251,27 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
     if version not in V2 + V3:
         raise ValueError(f"{root / 'meta' / 'info.json'}: codebase_version expected one of {list(V2 + V3)}, "
                          f"got {version!r}")
+    keys, size = select_cameras(info, cameras, root), image_hw(image_size)
+    image_keys = tuple(k for k in keys if info["features"][k]["dtype"] == "image")
     files = sorted((root / "data").rglob("*.parquet"))
     if not files:
         raise ValueError(f"load_dataset: expected parquet files under {root / 'data'}, found none")
-    tables = []
+    tables, times, pictures = [], [], {k: [] for k in image_keys}
     for path in files:
-        table = _read_frames(path)
+        table = _read_frames(path, image_keys)
         if table.num_rows == 0:
             raise ValueError(f"{path}: expected an episode with at least one frame, got an empty file (0 rows); "
                              f"delete it or record the episode again")
         states, actions = _matrix(table, STATE, path), _matrix(table, ACTION, path)
         task = table["task_index"].to_numpy() if "task_index" in table.column_names else np.zeros(len(table), np.int64)
         more = _matrix(table, CONTINUATION, path) if CONTINUATION in table.column_names else None
+        times.append(table["timestamp"].to_numpy().astype(np.float64) if "timestamp" in table.column_names else
+                     table["frame_index"].to_numpy() / float(info.get("fps") or 1))
+        for key in image_keys:
+            if key not in table.column_names:
+                raise ValueError(f"{path}: expected column {key!r} (a camera feature of info.json), got "
+                                 f"{table.column_names}")
+            pictures[key].append(_image_column(table, key, path, size, root))
         tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task,
                        more))
     widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1]) for s, a, *_, c in tables},
@@ -216,4 +313,12 @@ def load_dataset(root: str | Path) -> EpisodeDataset:
 
     count = int(task.max()) + 1
     tasks = _tasks_v3(root, count) if version in V3 else _tasks_v2(root, count)
-    return EpisodeDataset(states, actions, task, lengths, tasks, info.get("fps"), ids, root, {}, continuations)
+    timestamps = np.concatenate(times)[order]
+    for key in image_keys:
+        if len({p.shape[1:] for p in pictures[key]}) > 1:
+            raise ValueError(f"{root}: column {key!r} expected images of one size in every file, got "
+                             f"{sorted({p.shape[1:] for p in pictures[key]})}; pass image_size to resize them")
+    images = {k: np.concatenate(pictures[k])[order] if k in image_keys else
+              _video_frames(root, info, version, k, episode, timestamps, size) for k in keys}
+    return EpisodeDataset(states, actions, task, lengths, tasks, info.get("fps"), ids, root, {}, continuations,
+                          images or None)

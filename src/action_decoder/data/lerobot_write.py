@@ -18,6 +18,12 @@ match, and a flat vector loads everywhere; our reader reshapes it by the action 
 
 Statistics are exact over the frames they describe (``np.quantile``), with the raw std: LeRobot
 adds its own epsilon when normalising, and this library's reader floors the std when loading.
+
+Cameras (an episode's ``"images": {key: uint8 [L, H, W, 3]}``) become v3.0 video features: one
+H.264 (yuv420p) file per camera, ``videos/{key}/chunk-000/file-000.mp4``, holding the episodes one
+after another; each episode's ``videos/{key}/from_timestamp``/``to_timestamp`` (seconds) in
+meta/episodes say where it lies. Their statistics are per channel, ``[3, 1, 1]``, of pixel values
+in [0, 1], as LeRobot stores them (exact here, over every pixel of every frame).
 """
 
 from __future__ import annotations
@@ -34,12 +40,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .episodes import ACTION, CONTINUATION, STATE
+from .video import write_video
 
 CODEBASE_VERSION = "v3.0"
 CHUNK_SIZE = 1000                      # files per chunk folder
 DATA_FILE_SIZE_IN_MB = 100             # a data file is closed once it holds this much (episodes never split)
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+VIDEO_COLUMNS = {"chunk_index": pa.int64(), "file_index": pa.int64(), "from_timestamp": pa.float64(),
+                 "to_timestamp": pa.float64()}
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 SCALARS = {"timestamp": "float32", "frame_index": "int64", "episode_index": "int64", "index": "int64",
            "task_index": "int64", "next.reward": "float32", "next.success": "bool", "next.done": "bool"}
@@ -72,6 +82,27 @@ def _stats(values: np.ndarray) -> dict[str, np.ndarray]:
     out = {"min": values.min(0), "max": values.max(0), "mean": as_float.mean(0), "std": as_float.std(0),
            "count": np.array([len(values)], np.int64)}
     return {**out, **{k: np.quantile(as_float, q, axis=0) for k, q in QUANTILES.items()}}
+
+
+def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """LeRobot's statistics of a camera, ``frames [N, H, W, 3]`` uint8: per channel ``[3, 1, 1]`` of
+    values in [0, 1], ``count [1]`` frames. Exact, from each channel's 256-level histogram."""
+    hist = np.stack([np.bincount(frames[..., c].reshape(-1), minlength=256) for c in range(3)])   # [3, 256]
+    levels, total = np.arange(256) / 255.0, hist[0].sum()
+    mean = hist @ levels / total
+    std = np.sqrt(np.maximum(hist @ levels**2 / total - mean**2, 0.0))
+    cum = np.cumsum(hist, axis=1)                                              # [3, 256]
+
+    def quantile(q: float) -> np.ndarray:          # np.quantile's linear rule on the sorted pixel values
+        pos = q * (total - 1)
+        lo, hi = np.floor(pos), np.ceil(pos)
+        at = lambda k: levels[[np.searchsorted(cum[c], k, side="right") for c in range(3)]]
+        return at(lo) + (pos - lo) * (at(hi) - at(lo))
+
+    shaped = lambda v: np.asarray(v, np.float64).reshape(3, 1, 1)
+    return {"min": shaped(levels[(hist > 0).argmax(1)]), "max": shaped(levels[255 - (hist[:, ::-1] > 0).argmax(1)]),
+            "mean": shaped(mean), "std": shaped(std), "count": np.array([len(frames)], np.int64),
+            **{k: shaped(quantile(q)) for k, q in QUANTILES.items()}}
 
 
 def _episode_columns(ep: dict, e: int, start: int, fps: float) -> dict[str, np.ndarray]:
@@ -108,6 +139,7 @@ def _check(episodes: Sequence[dict], tasks: Sequence[str], fps: float) -> None:
     if len(shapes) > 1 or len(next(iter(shapes))[0] or ()) != 1 or len(next(iter(shapes))[1] or ()) != 1:
         raise ValueError(f"write_episodes: expected {STATE} [L, S], {ACTION} [L, D] (and {CONTINUATION} [L, K, D]) "
                          f"with the same widths in every episode, got per-frame shapes {sorted(shapes, key=str)}")
+    _check_images(episodes)
     for e, ep in enumerate(episodes):
         keys = [k for k in (STATE, ACTION, *OPTIONAL[:-1]) if k in ep]
         length, task = len(ep[ACTION]), ep.get("task_index")
@@ -116,6 +148,30 @@ def _check(episodes: Sequence[dict], tasks: Sequence[str], fps: float) -> None:
                              f"got {[len(ep[k]) for k in keys]}")
         if not isinstance(task, (int, np.integer)) or not 0 <= task < len(tasks):
             raise ValueError(f"write_episodes: episode {e} task_index expected an int in 0..{len(tasks) - 1}, got {task!r}")
+
+
+def _check_images(episodes: Sequence[dict]) -> None:
+    """``images``: in every episode or none, the same camera keys, uint8 ``[L, H, W, 3]`` of one size."""
+    if len({"images" in ep for ep in episodes}) > 1:
+        raise ValueError("write_episodes: images expected in every episode or in none, got them in some")
+    if "images" not in episodes[0]:
+        return
+    first = episodes[0]["images"]
+    if not isinstance(first, dict) or not first or not all(isinstance(k, str) and k for k in first):
+        raise ValueError(f"write_episodes: images expected {{camera key: uint8 [L, H, W, 3]}}, got "
+                         f"{type(first).__name__} {list(first) if isinstance(first, dict) else ''}")
+    sizes = {k: np.shape(v)[1:] for k, v in first.items()}
+    for e, ep in enumerate(episodes):
+        if not isinstance(ep["images"], dict) or list(ep["images"]) != list(first):
+            raise ValueError(f"write_episodes: episode {e} images expected the cameras {list(first)}, got "
+                             f"{list(ep['images']) if isinstance(ep['images'], dict) else type(ep['images']).__name__}")
+        for key, frames in ep["images"].items():
+            frames = np.asarray(frames)
+            if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[3] != 3 or \
+                    len(frames) != len(ep[ACTION]) or frames.shape[1:] != sizes[key]:
+                raise ValueError(f"write_episodes: episode {e} images[{key!r}] expected uint8 [{len(ep[ACTION])}, H, W, 3] "
+                                 f"(one frame per action, one size per camera: {list(sizes[key])}), got {frames.dtype} "
+                                 f"{list(frames.shape)}")
 
 
 def write_episodes(
@@ -132,7 +188,9 @@ def write_episodes(
 
     Each episode is a dict with ``observation.state [L, S]``, ``action [L, D]``, ``task_index``
     (int into ``tasks``, the task strings), ``next.reward [L]``, ``next.success [L]``, optional
-    ``seed`` (kept as an episode column) and optional ``action.continuation [L, K, D]``.
+    ``seed`` (kept as an episode column), optional ``action.continuation [L, K, D]`` and optional
+    ``images``: ``{camera key: uint8 [L, H, W, 3]}`` (e.g. ``observation.images.corner2``; even H
+    and W), written as H.264 video features.
     Without ``next.reward``/``next.success`` those columns and ``next.done`` are left out.
     ``info_extra`` is merged into ``info.json`` (e.g. ``{"env": "metaworld", "robot_type": ...}``);
     ``names`` gives per-dimension names of vector features (e.g. ``{"action": ["dx", "dy", "grip"]}``).
@@ -164,6 +222,9 @@ def write_episodes(
             raise ValueError(f"write_episodes: names expected {{vector feature: one name per dimension}} for "
                              f"{[k for k, f in features.items() if f['shape'] != [1]]}, got {key!r}: {value!r}")
         features[key]["names"] = list(value)
+    cameras = {k: np.shape(v)[1:] for k, v in first.get("images", {}).items()}         # key -> (H, W, 3)
+    videos = {k: {"dtype": "video", "shape": list(shape), "names": ["height", "width", "channels"]}
+              for k, shape in cameras.items()}
     schema = pa.schema([pa.field(k, _array_type(ft["shape"]) if ft["shape"] != [1] else ARROW[ft["dtype"]])
                         for k, ft in features.items()],
                        metadata={"huggingface": json.dumps({"info": {"features": {k: _hf_feature(ft) for k, ft in
@@ -180,7 +241,10 @@ def write_episodes(
         rows.append({"episode_index": e, "tasks": [tasks[int(ep["task_index"])]], "length": len(ep[ACTION]),
                      "data/chunk_index": file_no // CHUNK_SIZE, "data/file_index": file_no % CHUNK_SIZE,
                      "dataset_from_index": start, "dataset_to_index": start + len(ep[ACTION]),
+                     **{f"videos/{k}/{c}": v for k in cameras for c, v in zip(
+                         VIDEO_COLUMNS, (0, 0, start / fps, (start + len(ep[ACTION])) / fps))},
                      **{f"stats/{k}/{s}": v for k in features for s, v in _stats(columns[k]).items()},
+                     **{f"stats/{k}/{s}": v for k in cameras for s, v in _image_stats(ep["images"][k]).items()},
                      "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0,
                      **({"seed": int(ep["seed"])} if "seed" in ep else {})})
         pending.append(columns)
@@ -201,16 +265,23 @@ def write_episodes(
             path = root / DATA_PATH.format(chunk_index=file_no // CHUNK_SIZE, file_index=file_no % CHUNK_SIZE)
             path.parent.mkdir(parents=True, exist_ok=True)
             pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
-        _write_episode_rows(root, rows, features)
+        for key in cameras:
+            frames = np.concatenate([ep["images"][key] for ep in episodes])                 # [N, H, W, 3]
+            path = root / VIDEO_PATH.format(video_key=key, chunk_index=0, file_index=0)
+            videos[key]["info"] = write_video(path, frames, fps)
+        _write_episode_rows(root, rows, features, videos)
         _write_tasks(root, list(tasks))
         stats = {k: _stats(np.concatenate(v)) for k, v in all_columns.items()}
+        stats.update({k: _image_stats(np.concatenate([ep["images"][k] for ep in episodes])) for k in cameras})
         (root / "meta" / "stats.json").write_text(json.dumps(
             {k: {s: v.tolist() for s, v in st.items()} for k, st in stats.items()}, indent=4))
         info = {"codebase_version": CODEBASE_VERSION, "robot_type": None, "total_episodes": len(episodes),
                 "total_frames": start, "total_tasks": len(tasks), "chunks_size": CHUNK_SIZE,
                 "data_files_size_in_mb": data_file_size_in_mb, "video_files_size_in_mb": 200, "fps": fps,
-                "splits": {"train": f"0:{len(episodes)}"}, "data_path": DATA_PATH, "video_path": None,
-                "features": features, **(info_extra or {})}
+                "splits": {"train": f"0:{len(episodes)}"}, "data_path": DATA_PATH,
+                "video_path": VIDEO_PATH if cameras else None,
+                "features": {STATE: features[STATE], ACTION: features[ACTION], **videos, **features},
+                **(info_extra or {})}
         (root / "meta" / "info.json").write_text(json.dumps(info, indent=4))   # last: marks the dataset complete
     except BaseException:
         shutil.rmtree(root, ignore_errors=True)       # no half-written dataset left behind
@@ -236,12 +307,15 @@ def replace_dir(new: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _write_episode_rows(root: Path, rows: list[dict], features: dict) -> None:
+def _write_episode_rows(root: Path, rows: list[dict], features: dict, videos: dict) -> None:
     """``meta/episodes/chunk-000/file-000.parquet`` with LeRobot's column types: ``tasks``
-    list<string>, stats lists of float64 (min/max of int64 and bool features keep their type)."""
-    types = {"episode_index": pa.int64(), "tasks": pa.list_(pa.field("element", pa.string())), "length": pa.int64(),
+    list<string>, stats lists of float64 (min/max of int64 and bool features keep their type),
+    camera stats ``[3, 1, 1]`` lists of lists of lists."""
+    listed = lambda t: pa.list_(pa.field("element", t))
+    types = {"episode_index": pa.int64(), "tasks": listed(pa.string()), "length": pa.int64(),
              "data/chunk_index": pa.int64(), "data/file_index": pa.int64(), "dataset_from_index": pa.int64(),
-             "dataset_to_index": pa.int64()}
+             "dataset_to_index": pa.int64(),
+             **{f"videos/{k}/{c}": t for k in videos for c, t in VIDEO_COLUMNS.items()}}
     for k, ft in features.items():
         for s in ("min", "max", "mean", "std", "count", *QUANTILES):
             element = pa.int64() if s == "count" else (ARROW[ft["dtype"]] if s in ("min", "max") and ft["dtype"] != "float32"
@@ -249,6 +323,9 @@ def _write_episode_rows(root: Path, rows: list[dict], features: dict) -> None:
             types[f"stats/{k}/{s}"] = pa.list_(pa.field("element", element))
             for _ in ft["shape"][1:] if s != "count" else ():                 # [K, D] stats: lists of lists
                 types[f"stats/{k}/{s}"] = pa.list_(pa.field("element", types[f"stats/{k}/{s}"]))
+    for k in videos:
+        for s in ("min", "max", "mean", "std", "count", *QUANTILES):
+            types[f"stats/{k}/{s}"] = listed(pa.int64()) if s == "count" else listed(listed(listed(pa.float64())))
     types.update({"meta/episodes/chunk_index": pa.int64(), "meta/episodes/file_index": pa.int64()})
     if "seed" in rows[0]:
         types["seed"] = pa.int64()
