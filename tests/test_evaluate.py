@@ -185,17 +185,6 @@ def test_eval_renders_the_cameras_of_a_camera_policy(tmp_path):
     assert saved["per_task"] == {"reach-v3": saved["success_rate"]}
 
 
-def _train_config_has_cameras() -> bool:
-    from dataclasses import fields
-
-    from action_decoder.train import TrainConfig
-
-    return "cameras" in {f.name for f in fields(TrainConfig)}
-
-
-@pytest.mark.skipif(not _train_config_has_cameras(),
-                    reason="end to end with Meta-World pixels: needs TrainConfig.cameras and load_demos(cameras=...) "
-                           "of the data side (branch camdata); runs once both are merged")
 def test_train_and_eval_a_camera_policy_on_metaworld_pixels_end_to_end(tmp_path):
     import os
     import subprocess

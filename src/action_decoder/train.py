@@ -276,7 +276,7 @@ def state_layout(cfg: TrainConfig) -> str:
         return cfg.state_layout
     if cfg.dataset is not None:
         return "flat"
-    return "metaworld_proprio" if getattr(cfg, "cameras", None) else "metaworld"
+    return "metaworld_proprio" if cfg.cameras else "metaworld"
 
 
 def augment_shift(cfg: TrainConfig) -> float:
@@ -518,7 +518,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     resumed = _resume(cfg, out, device, main)
     ds, tasks, val = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks,
-                           getattr(ds.dataset, "images", None))
+                           ds.dataset.images)
     dconf.extra["data"] = {"episodes": ds.dataset.num_episodes, "frames": ds.dataset.num_frames}   # for the model card
     torch.manual_seed(cfg.seed)
     policy = ActionDecoderPolicy(dconf, ds.stats).to(device)
