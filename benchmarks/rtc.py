@@ -6,10 +6,11 @@
 For each task it trains (once, with `action-decoder train` defaults, no evaluation) a flow-matching
 and a MeanFlow policy under --runs/<task>-<decoder>/, then evaluates closed loop, re-planning every
 n_action_steps = 4 of 16 actions, for each sampling setting (FM K = 10, MF K = 1, MF K = 2), each
-delay d and each of naive switching and RTC: success and the boundary jerk (mean squared second
-difference of the executed actions over the stencils that span a chunk switch, `envs.evaluate`).
-Every evaluation draws the same noise per (episode, plan) in both arms, so the arms differ only by
-RTC. Per-chunk latency is timed for one state (batch 1) on this machine's threads, plain and RTC
+delay d, naive switching and RTC with each --horizons value (`rtc_horizon`: "overlap", the paper's,
+guides every row the previous chunk covers; "execution" only the rows the new chunk executes):
+success and the boundary jerk (mean squared second difference of the executed actions over the
+stencils that span a chunk switch, `envs.evaluate`). Every evaluation draws the same noise per
+(episode, plan) in all arms, so the arms differ only by RTC. Per-chunk latency is timed for one state (batch 1) on this machine's threads, plain and RTC
 calls interleaved, the median over --latency-reps calls each. Rows go to --json; the page
 --table is rebuilt from them (text under the notes marker is kept).
 """
@@ -74,17 +75,21 @@ def evaluate_grid(task: str, ckpt: Path, decoder: str, steps: int, args) -> list
     plain, rtc = chunk_latency(policy, steps, max(args.delays), args.latency_reps)
     rows = []
     for delay in args.delays:
-        for use_rtc in (False, True):
+        for arm in ["naive", *args.horizons]:
+            use_rtc = arm != "naive"
+            if use_rtc:
+                policy.config.rtc_horizon = arm
             fn = make_policy_fn(policy, 1, None, steps, torch.Generator().manual_seed(args.seed))
             res = evaluate(fn, task, episodes=args.episodes, seed=args.seed, n_action_steps=policy.config.n_action_steps,
                            num_envs=args.num_envs, delay=delay, rtc=use_rtc)
             rows.append({"task": res["task"], "decoder": decoder, "steps": steps, "delay": delay, "rtc": use_rtc,
+                         "rtc_horizon": arm if use_rtc else None,
                          "episodes": args.episodes, "seed": args.seed, "success_rate": res["success_rate"],
                          "successes": int(sum(res["successes"])), "boundary_jerk": res["boundary_jerk"],
                          "boundaries": res["boundaries"], "jerk": res["jerk"],
                          "episode_boundary_jerk": res["episode_boundary_jerk"],
                          "latency_ms": 1000 * (rtc if use_rtc else plain), "checkpoint": str(ckpt)})
-            print(f"[{res['task']}] {LABEL[(decoder, steps)]} d={delay} {'rtc' if use_rtc else 'naive'}: "
+            print(f"[{res['task']}] {LABEL[(decoder, steps)]} d={delay} {arm}: "
                   f"success {res['success_rate']:.2f}, boundary jerk {res['boundary_jerk']:.4g}, "
                   f"chunk {rows[-1]['latency_ms']:.1f} ms", flush=True)
     return rows
@@ -113,42 +118,56 @@ def _standard_error(values: list) -> float:
     return statistics.stdev(values) / len(values) ** 0.5 if len(values) > 1 else float("nan")
 
 
+def arm(row: dict) -> str:
+    """"naive", or the RTC horizon the row was sampled with (rows without one used the whole overlap)."""
+    return (row.get("rtc_horizon") or "overlap") if row["rtc"] else "naive"
+
+
+ARMS = ("naive", "overlap", "execution")
+ARM_LABEL = {"naive": "naive", "overlap": "RTC, overlap", "execution": "RTC, execution"}
+
+
 def tabulate(rows: list[dict], delays: list[int]) -> list[str]:
-    """One line per (setting, delay): success and boundary jerk of both arms over all tasks."""
-    lines = ["| setting | d | success naive | success RTC | boundary jerk naive | boundary jerk RTC | "
-             "jerk ratio RTC/naive | chunk ms plain | chunk ms RTC | cost ratio |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    """One line per (setting, delay, arm): success and boundary jerk over all tasks, against naive switching."""
+    lines = ["| setting | d | arm | success % | Δ success vs naive | boundary jerk | jerk ÷ naive | chunk ms | "
+             "cost ÷ plain |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for setting in SETTINGS:
         for d in delays:
-            arm = {r: [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d and x["rtc"] == r]
-                   for r in (False, True)}
-            if not arm[False] or not arm[True]:
+            got = {a: [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d and arm(x) == a]
+                   for a in ARMS}
+            if not got["naive"]:
                 continue
-            succ = {r: 100 * sum(x["successes"] for x in v) / sum(x["episodes"] for x in v) for r, v in arm.items()}
-            jerk = {r: sum(x["boundary_jerk"] * x["boundaries"] for x in v) / max(1, sum(x["boundaries"] for x in v))
-                    for r, v in arm.items()}
-            se = {r: _standard_error([j for x in v for j in x.get("episode_boundary_jerk", []) if j is not None])
-                  for r, v in arm.items()}
-            ms = {r: statistics.mean(x["latency_ms"] for x in v) for r, v in arm.items()}
-            lines.append(f"| {LABEL[setting]} | {d} | {succ[False]:.1f} | {succ[True]:.1f} | {jerk[False]:.4f} ± {se[False]:.4f} | "
-                         f"{jerk[True]:.4f} ± {se[True]:.4f} | {jerk[True] / jerk[False]:.2f} | {ms[False]:.1f} | {ms[True]:.1f} | "
-                         f"{ms[True] / ms[False]:.2f}× |")
+            succ = {a: 100 * sum(x["successes"] for x in v) / sum(x["episodes"] for x in v) for a, v in got.items() if v}
+            jerk = {a: sum(x["boundary_jerk"] * x["boundaries"] for x in v) / max(1, sum(x["boundaries"] for x in v))
+                    for a, v in got.items() if v}
+            se = {a: _standard_error([j for x in v for j in x.get("episode_boundary_jerk", []) if j is not None])
+                  for a, v in got.items() if v}
+            ms = {a: statistics.mean(x["latency_ms"] for x in v) for a, v in got.items() if v}
+            for a in ARMS:
+                if a not in succ:
+                    continue
+                versus = ["", "", ""] if a == "naive" else [
+                    f"{succ[a] - succ['naive']:+.1f}", f"{jerk[a] / jerk['naive']:.2f}", f"{ms[a] / ms['naive']:.2f}×"]
+                lines.append(f"| {LABEL[setting]} | {d} | {ARM_LABEL[a]} | {succ[a]:.1f} | {versus[0]} | "
+                             f"{jerk[a]:.4f} ± {se[a]:.4f} | {versus[1]} | {ms[a]:.1f} | {versus[2]} |")
     return lines
 
 
 def per_task(rows: list[dict], delays: list[int]) -> list[str]:
     tasks = sorted({r["task"] for r in rows})
-    head = "| setting | d | " + " | ".join(f"{t} naive / RTC" for t in tasks) + " |"
+    arms = [a for a in ARMS if any(arm(r) == a for r in rows)]
+    head = "| setting | d | " + " | ".join(f"{t} {' / '.join(arms)}" for t in tasks) + " |"
     lines = [head, "|---|---|" + "---|" * len(tasks)]
     for setting in SETTINGS:
         for d in delays:
             cells = []
             for t in tasks:
-                got = {r: [x for x in rows if x["task"] == t and (x["decoder"], x["steps"]) == setting
-                           and x["delay"] == d and x["rtc"] == r] for r in (False, True)}
+                got = {a: [x for x in rows if x["task"] == t and (x["decoder"], x["steps"]) == setting
+                           and x["delay"] == d and arm(x) == a] for a in arms}
                 cells.append(" / ".join(f"{100 * sum(x['successes'] for x in v) / sum(x['episodes'] for x in v):.0f}"
                                         if v else "–" for v in got.values()))
-            if any(c != "– / –" for c in cells):
+            if any(set(c.split(" / ")) != {"–"} for c in cells):
                 lines.append(f"| {LABEL[setting]} | {d} | " + " | ".join(cells) + " |")
     return lines
 
@@ -167,8 +186,9 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
         f"{os.cpu_count()} CPU cores shared, {os.environ.get('OMP_NUM_THREADS', '?')} torch thread per process).", "",
         f"Tasks: {', '.join(sorted(n))}; {'/'.join(map(str, eps))} episodes per task, seed and cell, "
         f"evaluation seeds {', '.join(map(str, seeds))} (pooled), "
-        f"re-planning every 4 of 16 actions; d = simulated inference time in control steps. Both arms draw "
-        f"the same noise for each (episode, plan). Success is over all tasks' episodes ({n_eps} per cell); "
+        f"re-planning every 4 of 16 actions; d = simulated inference time in control steps. All arms draw "
+        f"the same noise for each (episode, plan). RTC, overlap: the paper's guidance over the whole overlap "
+        f"(H − s rows); RTC, execution: only over the rows the new chunk executes (d + s). Success is over all tasks' episodes ({n_eps} per cell); "
         f"its run-to-run noise, estimated as the binomial standard error at 50 %, is ±{noise:.1f} points, so two "
         f"cells differ beyond noise (2 standard errors of a difference) only by more than {2 * 2 ** 0.5 * noise:.0f} "
         f"points. Boundary jerk: "
@@ -192,6 +212,8 @@ def main(argv=None) -> None:
     p.add_argument("--delays", nargs="+", type=int, default=[0, 2, 4])
     p.add_argument("--settings", nargs="+", default=[f"{d}:{k}" for d, k in SETTINGS],
                    help="decoder:steps pairs among " + ", ".join(f"{d}:{k}" for d, k in SETTINGS))
+    p.add_argument("--horizons", nargs="+", default=["overlap", "execution"], choices=["overlap", "execution"],
+                   help="the RTC arms: rtc_horizon values, each evaluated beside naive switching")
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=0, help="evaluation seed; rows of several seeds are pooled")
     p.add_argument("--num-envs", type=int, default=10)
@@ -227,7 +249,7 @@ def main(argv=None) -> None:
         for decoder, steps in settings:
             ckpt = train(task, decoder, Path(args.runs))
             new = [{**r, "command": command} for r in evaluate_grid(task, ckpt, decoder, steps, args)]
-            key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["rtc"], r["seed"])
+            key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], arm(r), r["seed"])
             rows = [r for r in rows if key(r) not in {key(n) for n in new}] + new
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(rows, indent=1))

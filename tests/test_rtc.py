@@ -203,6 +203,23 @@ def test_config_validates_the_rtc_fields():
         DecoderConfig(rtc_guidance_weight=float("inf"))
     with pytest.raises(ValueError, match="rtc_schedule: expected one of"):
         DecoderConfig(rtc_schedule="cosine")
+    with pytest.raises(ValueError, match="rtc_horizon: expected one of"):
+        DecoderConfig(rtc_horizon="chunk")
+
+
+@pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
+def test_execution_horizon_guides_only_the_rows_the_new_chunk_executes(decoder):
+    """rtc_horizon="execution": the same chunk as passing prev_chunk's first d + s rows, not the whole overlap."""
+    policy = tiny(decoder, n_action_steps=2)
+    batch = {"state": torch.randn(3, 6, generator=torch.Generator().manual_seed(2))}
+    prev = torch.randn(3, 6, 3, generator=torch.Generator().manual_seed(3))                 # L = 6 > d + s = 3
+    gen = lambda: torch.Generator().manual_seed(0)
+    whole = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev, delay=1)
+    short = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev[:, :3], delay=1)
+    policy.config.rtc_horizon = "execution"
+    executed = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev, delay=1)
+    torch.testing.assert_close(executed, short, rtol=0, atol=0)
+    assert not torch.allclose(executed, whole)
 
 
 # ---------------------------------------------------------------------------- asynchronous evaluation
@@ -275,11 +292,17 @@ def test_benchmark_table_pools_seeds_by_episode_and_jerk_by_stencil(tmp_path):
                 "boundaries": boundaries, "episode_boundary_jerk": per_episode, "latency_ms": ms, "command": "c"}
 
     rows = [row(0, False, 4, 0.2, 10, [0.2] * 4, 10.0), row(1, False, 2, 0.1, 30, [0.1] * 4, 10.0),
-            row(0, True, 3, 0.1, 10, [0.1] * 4, 20.0), row(1, True, 3, 0.1, 10, [0.0, 0.2, 0.1, 0.1], 30.0)]
+            row(0, True, 3, 0.1, 10, [0.1] * 4, 20.0), row(1, True, 3, 0.1, 10, [0.0, 0.2, 0.1, 0.1], 30.0),
+            {**row(0, True, 1, 0.05, 20, [0.05] * 4, 10.0), "rtc_horizon": "execution"}]
     page = tmp_path / "rtc.md"
     write_page(rows, page, Namespace(seed=0, latency_reps=5), "c")
-    line = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |"))
-    cells = [c.strip() for c in line.strip("|").split("|")]
-    assert cells[2:4] == ["75.0", "75.0"]                                  # 6/8 and 6/8 episodes
-    assert cells[4].startswith("0.1250 ± ") and cells[5].startswith("0.1000 ± ")   # (0.2·10 + 0.1·30)/40
-    assert cells[6] == "0.80" and cells[9] == "2.50×"                      # 0.1/0.125; 25 ms / 10 ms
+    lines = {l.split("|")[3].strip(): [c.strip() for c in l.strip("|").split("|")]
+             for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |")}
+    naive, overlap, execution = lines["naive"], lines["RTC, overlap"], lines["RTC, execution"]
+    assert naive[3] == "75.0" and naive[5].startswith("0.1250 ± ")       # 6/8 episodes; (0.2·10 + 0.1·30)/40
+    assert overlap[3:5] == ["75.0", "+0.0"] and overlap[5].startswith("0.1000 ± ")   # rows without a horizon
+    assert overlap[6] == "0.80" and overlap[8] == "2.50×"                 # 0.1/0.125; 25 ms / 10 ms
+    assert execution[3:5] == ["25.0", "-50.0"] and execution[6] == "0.40" and execution[8] == "1.00×"
+    per_task = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |") and "RTC" not in l
+                    and "naive" not in l)
+    assert per_task.split("|")[3].strip() == "75 / 75 / 25"

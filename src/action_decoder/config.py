@@ -24,6 +24,7 @@ MEANFLOW_VELOCITIES = ("boundary", "identity")
 MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
+RTC_HORIZONS = ("overlap", "execution")                # which rows of prev_chunk RTC guides
 IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
 CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
@@ -35,7 +36,8 @@ CONFIG_FORMAT_VERSION = 4
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
     3: {"rtc_guidance_weight": 5.0, "rtc_schedule": "exp", "meanflow_dudt": "jvp"},
     4: {"cameras": (), "image_size": 64, "image_encoder": "conv", "image_tokens_per_camera": 4,
-        "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 4},
+        "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 4,
+        "rtc_horizon": "overlap"},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -94,12 +96,16 @@ class DecoderConfig:
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
     # --- real-time chunking (`flows/rtc.py`; used when a previous chunk is passed to sampling) ---
-    # β: the clip of the guidance weight min(β, (1 − t)/(t·r_t²)) (the paper's 5; 0: no guidance,
-    # only the frozen prefix). The samplers also clip it at 1/Δt (a 1-step MeanFlow uses 1).
+    # β: the clip of the guidance weight (the paper's 5; 0: no guidance, only the frozen prefix):
+    # flow matching's min(β, (1 − t)/(t·r_t²), 1/Δt), MeanFlow's min(β, 1/(1 − t)).
     rtc_guidance_weight: float = 5.0
     # How the guidance weights decay over the overlap after the frozen prefix: "exp" (the paper),
     # "linear", "ones" (the whole overlap as strongly as the prefix), "zeros" (only the prefix).
     rtc_schedule: str = "exp"
+    # The rows guided after the d frozen ones: "overlap" (the paper: every row prev_chunk covers,
+    # H − s) or "execution" (only those the new chunk executes before the next plan: rows < d + s,
+    # s = n_action_steps; later rows are re-planned anyway and stay free).
+    rtc_horizon: str = "overlap"
     # --- the Action Expert network ---
     state_dim: int = 39
     action_dim: int = 4
@@ -151,6 +157,7 @@ class DecoderConfig:
         _choice("flow_prediction", self.flow_prediction, FLOW_PREDICTIONS)
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
+        _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         if self.flow_sde_t_min is not None:

@@ -343,7 +343,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         0..L−1 (its actions from s on, after s executed ones: L = H − s), and `delay` d ≤ L is how
         many control steps inference takes. The returned chunk's first d actions are prev_chunk's,
         exactly; the rest of the overlap is guided towards prev_chunk with weights that decay
-        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free. Flow matching's
+        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free (with
+        `rtc_horizon="execution"`, steps ≥ d + n_action_steps too). Flow matching's
         guidance costs each step its vector–Jacobian product; MeanFlow's needs none (a 1-step chunk
         stays one network call, K steps take 2K − 1). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
         `chain_log_prob` to re-score it).
@@ -371,6 +372,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         out = PolicyOutput()
         if prev_chunk is not None:
             prev = self.normalizers["actions"].normalize(prev_chunk.to(param.device, torch.float32))   # [B, L, D]
+            if cfg.rtc_horizon == "execution":
+                prev = prev[:, : delay + cfg.n_action_steps]                                   # [B, min(L, d + s), D]
             rtc = {"max_guidance_weight": cfg.rtc_guidance_weight, "schedule": cfg.rtc_schedule}
             if chosen == "sde":
                 res = sample_sde_rtc(velocity, noise, prev, delay, steps, self.sigma, generator=generator,
