@@ -156,3 +156,18 @@ def test_vlm_guide_example_runs():
     cache, policy = scope["cache"], scope["policy"]
     assert policy.model.conditioning.vlm_k_proj[0].weight.grad.abs().sum() > 0, "the cache conditions training"
     assert len(cache.layers) == policy.config.vlm_num_layers
+
+
+def test_cameras_guide_example_runs():
+    """The cameras guide trains and samples a camera policy on the LeRobot-written camera fixture."""
+    blocks = [b for b in _python_blocks(ROOT / "docs" / "guides" / "cameras.md") if "v30_cams" in b]
+    assert len(blocks) == 1
+    scope: dict = {}
+    cwd = os.getcwd()
+    os.chdir(ROOT)
+    try:
+        exec(compile(blocks[0], "cameras.md", "exec"), scope)
+    finally:
+        os.chdir(cwd)
+    assert scope["chunk"].shape[1:] == (8, 2) and scope["policy"].config.cameras == (
+        "observation.images.top", "observation.images.wrist")
