@@ -284,3 +284,18 @@ def test_resume_from_the_new_format_is_bit_exact_and_a_pickled_state_is_one_line
 def test_no_pickled_training_state_is_loaded_anywhere_in_the_library():
     hits = [str(p) for p in (SRC / "action_decoder").rglob("*.py") if "weights_only=False" in p.read_text()]
     assert hits == []
+
+
+def test_a_camera_policys_card_names_its_cameras(tmp_path):
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+
+    cfg = DecoderConfig(decoder_type="flow_matching", state_dim=4, action_dim=2, action_chunk_size=4, hidden_size=32,
+                        num_hidden_layers=1, cameras=["observation.images.corner2"], image_size=32)
+    ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "c")
+    card = (tmp_path / "c" / "README.md").read_text()
+    line = next(l for l in card.splitlines() if l.startswith("| conditioning |"))
+    assert "cameras observation.images.corner2 (32 px, conv encoder, 4 tokens each)" in line
+    plain = DecoderConfig(decoder_type="flow_matching", state_dim=4, action_dim=2, action_chunk_size=4,
+                          hidden_size=32, num_hidden_layers=1)
+    ActionDecoderPolicy(plain).save_pretrained(tmp_path / "p")
+    assert "| conditioning | state only |" in (tmp_path / "p" / "README.md").read_text()

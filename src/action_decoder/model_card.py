@@ -128,7 +128,9 @@ def _policy_table(config: DecoderConfig, num_parameters: int) -> list[str]:
     head = {"DDPM": f"{config.prediction_type} prediction"}.get(config.decoder_type, f"{config.flow_prediction} head")
     native = {"DDPM": "DPM-Solver++", "flow_matching": "Euler ODE", "mean_flow": "MeanFlow steps"}[config.decoder_type]
     conditioning = [f"context tokens of width {config.context_dim}" if config.context_dim else "",
-                    f"a VLM KV cache of {config.vlm_num_layers} layers" if config.vlm_num_layers else ""]
+                    f"a VLM KV cache of {config.vlm_num_layers} layers" if config.vlm_num_layers else "",
+                    f"cameras {', '.join(config.cameras)} ({config.image_size} px, {config.image_encoder} encoder, "
+                    f"{config.image_tokens_per_camera} tokens each)" if config.cameras else ""]
     return ["| | |", "|---|---|", f"| decoder | {config.decoder_type} ({head}) |",
             f"| sampler | {sampler} ({native if sampler == 'ode' else 'SDE, ' + config.flow_sde_mode}), K = {steps} |",
             f"| action chunk | {config.action_chunk_size} steps × {config.action_dim} dims, "
