@@ -120,7 +120,8 @@ def test_camera_fields_round_trip_and_a_format_3_checkpoint_reads_without_camera
     v3 = {k: v for k, v in DecoderConfig().to_dict().items() if k not in ADDED_FIELDS[4]}
     (tmp_path / "v3.json").write_text(json.dumps({**v3, "format_version": 3}))
     old = DecoderConfig.from_json(tmp_path / "v3.json")
-    assert old.cameras == () and not old.uses_cameras and old == DecoderConfig()
+    assert old.cameras == () and not old.uses_cameras and old == DecoderConfig(rtc_horizon="overlap")
+    assert DecoderConfig().rtc_horizon == "auto" and old.rtc_horizon == "overlap"   # RTC as format 3 sampled it
 
 
 @pytest.mark.parametrize("over, match", [

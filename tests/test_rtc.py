@@ -214,12 +214,16 @@ def test_execution_horizon_guides_only_the_rows_the_new_chunk_executes(decoder):
     batch = {"state": torch.randn(3, 6, generator=torch.Generator().manual_seed(2))}
     prev = torch.randn(3, 6, 3, generator=torch.Generator().manual_seed(3))                 # L = 6 > d + s = 3
     gen = lambda: torch.Generator().manual_seed(0)
-    whole = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev, delay=1)
-    short = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev[:, :3], delay=1)
-    policy.config.rtc_horizon = "execution"
-    executed = policy.predict_action_chunk(batch, generator=gen(), prev_chunk=prev, delay=1)
+    chunk = lambda horizon, p: (setattr(policy.config, "rtc_horizon", horizon),
+                                policy.predict_action_chunk(batch, generator=gen(), prev_chunk=p, delay=1))[1]
+    whole, short = chunk("overlap", prev), chunk("overlap", prev[:, :3])
+    executed = chunk("execution", prev)
     torch.testing.assert_close(executed, short, rtol=0, atol=0)
     assert not torch.allclose(executed, whole)
+    # "auto" (the default): the whole overlap for flow matching, the execution horizon for MeanFlow.
+    assert DecoderConfig().rtc_horizon == "auto"
+    expected = executed if decoder == "mean_flow" else whole
+    torch.testing.assert_close(chunk("auto", prev), expected, rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------------------- asynchronous evaluation

@@ -24,7 +24,7 @@ MEANFLOW_VELOCITIES = ("boundary", "identity")
 MEANFLOW_DUDT = ("jvp", "finite_difference")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
-RTC_HORIZONS = ("overlap", "execution")                # which rows of prev_chunk RTC guides
+RTC_HORIZONS = ("auto", "overlap", "execution")        # which rows of prev_chunk RTC guides
 IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
 CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
@@ -104,8 +104,10 @@ class DecoderConfig:
     rtc_schedule: str = "exp"
     # The rows guided after the d frozen ones: "overlap" (the paper: every row prev_chunk covers,
     # H − s) or "execution" (only those the new chunk executes before the next plan: rows < d + s,
-    # s = n_action_steps; later rows are re-planned anyway and stay free).
-    rtc_horizon: str = "overlap"
+    # s = n_action_steps; later rows are re-planned anyway and stay free). "auto": overlap for flow
+    # matching, whose Jᵀ-guidance is re-projected by the later steps, and execution for MeanFlow,
+    # whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both).
+    rtc_horizon: str = "auto"
     # --- the Action Expert network ---
     state_dim: int = 39
     action_dim: int = 4

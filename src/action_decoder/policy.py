@@ -296,6 +296,14 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                           prev_chunk=prev_chunk, delay=delay)
         return out if out.log_prob is not None else out.actions
 
+    @property
+    def rtc_horizon(self) -> str:
+        """The RTC horizon in effect: `config.rtc_horizon`, with "auto" resolved per decoder."""
+        horizon = self.config.rtc_horizon
+        if horizon == "auto":
+            return "execution" if self.config.decoder_type == "mean_flow" else "overlap"
+        return horizon
+
     def _check_prev_chunk(self, batch: Mapping[str, Any], prev_chunk: Optional[Tensor], delay: Any) -> int:
         """Validate the RTC arguments; returns the delay as an int."""
         cfg = self.config
@@ -343,8 +351,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         0..L−1 (its actions from s on, after s executed ones: L = H − s), and `delay` d ≤ L is how
         many control steps inference takes. The returned chunk's first d actions are prev_chunk's,
         exactly; the rest of the overlap is guided towards prev_chunk with weights that decay
-        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free (with
-        `rtc_horizon="execution"`, steps ≥ d + n_action_steps too). Flow matching's
+        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free (with the
+        `rtc_horizon` "execution", MeanFlow's default, steps ≥ d + n_action_steps too). Flow matching's
         guidance costs each step its vector–Jacobian product; MeanFlow's needs none (a 1-step chunk
         stays one network call, K steps take 2K − 1). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
         `chain_log_prob` to re-score it).
@@ -372,7 +380,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         out = PolicyOutput()
         if prev_chunk is not None:
             prev = self.normalizers["actions"].normalize(prev_chunk.to(param.device, torch.float32))   # [B, L, D]
-            if cfg.rtc_horizon == "execution":
+            if self.rtc_horizon == "execution":
                 prev = prev[:, : delay + cfg.n_action_steps]                                   # [B, min(L, d + s), D]
             rtc = {"max_guidance_weight": cfg.rtc_guidance_weight, "schedule": cfg.rtc_schedule}
             if chosen == "sde":
