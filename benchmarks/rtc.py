@@ -124,33 +124,38 @@ def arm(row: dict) -> str:
 
 
 ARMS = ("naive", "overlap", "execution")
-ARM_LABEL = {"naive": "naive", "overlap": "RTC, overlap", "execution": "RTC, execution"}
+
+
+DEFAULT_ARM = {"flow_matching": "overlap", "mean_flow": "execution"}     # rtc_horizon="auto"
+
+
+def _pool(rows: list[dict]) -> tuple[float, float, float, float]:
+    """Success %, boundary jerk (pooled by stencil), its standard error over episodes, mean chunk ms."""
+    succ = 100 * sum(x["successes"] for x in rows) / sum(x["episodes"] for x in rows)
+    jerk = sum(x["boundary_jerk"] * x["boundaries"] for x in rows) / max(1, sum(x["boundaries"] for x in rows))
+    se = _standard_error([j for x in rows for j in x.get("episode_boundary_jerk", []) if j is not None])
+    return succ, jerk, se, statistics.mean(x["latency_ms"] for x in rows)
 
 
 def tabulate(rows: list[dict], delays: list[int]) -> list[str]:
-    """One line per (setting, delay, arm): success and boundary jerk over all tasks, against naive switching."""
-    lines = ["| setting | d | arm | success % | Δ success vs naive | boundary jerk | jerk ÷ naive | chunk ms | "
-             "cost ÷ plain |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    """One line per (setting, delay, RTC arm): the arm against naive switching on the same tasks and seeds."""
+    lines = ["| setting | d | RTC horizon | tasks | success naive | success RTC | Δ success | boundary jerk naive | "
+             "boundary jerk RTC | jerk ÷ naive | chunk ms plain | chunk ms RTC | cost ÷ plain |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for setting in SETTINGS:
         for d in delays:
-            got = {a: [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d and arm(x) == a]
-                   for a in ARMS}
-            if not got["naive"]:
-                continue
-            succ = {a: 100 * sum(x["successes"] for x in v) / sum(x["episodes"] for x in v) for a, v in got.items() if v}
-            jerk = {a: sum(x["boundary_jerk"] * x["boundaries"] for x in v) / max(1, sum(x["boundaries"] for x in v))
-                    for a, v in got.items() if v}
-            se = {a: _standard_error([j for x in v for j in x.get("episode_boundary_jerk", []) if j is not None])
-                  for a, v in got.items() if v}
-            ms = {a: statistics.mean(x["latency_ms"] for x in v) for a, v in got.items() if v}
-            for a in ARMS:
-                if a not in succ:
+            for a in ARMS[1:]:
+                rtc = [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d and arm(x) == a]
+                cells = {(x["task"], x["seed"]) for x in rtc}
+                naive = [x for x in rows if (x["decoder"], x["steps"]) == setting and x["delay"] == d
+                         and arm(x) == "naive" and (x["task"], x["seed"]) in cells]
+                if not rtc or not naive:
                     continue
-                versus = ["", "", ""] if a == "naive" else [
-                    f"{succ[a] - succ['naive']:+.1f}", f"{jerk[a] / jerk['naive']:.2f}", f"{ms[a] / ms['naive']:.2f}×"]
-                lines.append(f"| {LABEL[setting]} | {d} | {ARM_LABEL[a]} | {succ[a]:.1f} | {versus[0]} | "
-                             f"{jerk[a]:.4f} ± {se[a]:.4f} | {versus[1]} | {ms[a]:.1f} | {versus[2]} |")
+                (s0, j0, e0, m0), (s1, j1, e1, m1) = _pool(naive), _pool(rtc)
+                label = a + (" (default)" if DEFAULT_ARM[setting[0]] == a else "")
+                lines.append(f"| {LABEL[setting]} | {d} | {label} | {len({t for t, _ in cells})} | {s0:.1f} | {s1:.1f} | "
+                             f"{s1 - s0:+.1f} | {j0:.4f} ± {e0:.4f} | {j1:.4f} ± {e1:.4f} | {j1 / j0:.2f} | {m0:.1f} | "
+                             f"{m1:.1f} | {m1 / m0:.2f}× |")
     return lines
 
 

@@ -301,12 +301,13 @@ def test_benchmark_table_pools_seeds_by_episode_and_jerk_by_stencil(tmp_path):
     page = tmp_path / "rtc.md"
     write_page(rows, page, Namespace(seed=0, latency_reps=5), "c")
     lines = {l.split("|")[3].strip(): [c.strip() for c in l.strip("|").split("|")]
-             for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |")}
-    naive, overlap, execution = lines["naive"], lines["RTC, overlap"], lines["RTC, execution"]
-    assert naive[3] == "75.0" and naive[5].startswith("0.1250 ± ")       # 6/8 episodes; (0.2·10 + 0.1·30)/40
-    assert overlap[3:5] == ["75.0", "+0.0"] and overlap[5].startswith("0.1000 ± ")   # rows without a horizon
-    assert overlap[6] == "0.80" and overlap[8] == "2.50×"                 # 0.1/0.125; 25 ms / 10 ms
-    assert execution[3:5] == ["25.0", "-50.0"] and execution[6] == "0.40" and execution[8] == "1.00×"
-    per_task = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |") and "RTC" not in l
-                    and "naive" not in l)
+             for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |") and "/" not in l}
+    overlap, execution = lines["overlap"], lines["execution (default)"]    # MeanFlow's default: execution
+    assert overlap[3:7] == ["1", "75.0", "75.0", "+0.0"]                   # rows without a horizon: the overlap
+    assert overlap[7].startswith("0.1250 ± ") and overlap[8].startswith("0.1000 ± ")   # (0.2·10 + 0.1·30)/40
+    assert overlap[9] == "0.80" and overlap[12] == "2.50×"                # 0.1/0.125; 25 ms / 10 ms
+    # The execution arm ran at seed 0 only: naive switching is pooled over the same (task, seed) cells.
+    assert execution[4:7] == ["100.0", "25.0", "-75.0"] and execution[7].startswith("0.2000 ± ")
+    assert execution[9] == "0.25" and execution[12] == "1.00×"
+    per_task = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |") and "/" in l)
     assert per_task.split("|")[3].strip() == "75 / 75 / 25"
