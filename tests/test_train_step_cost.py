@@ -76,3 +76,17 @@ def test_multimodal_dudt_option_reaches_the_mean_flow_config(cost, tmp_path):
     assert mm.main(["--tiny", "--only", "synthetic", "--decoders", "mean_flow", "--dudt", "jvp",
                     "--out", str(tmp_path)]) == 0
     assert json.loads((tmp_path / "multimodal_run.json").read_text())["meta"]["budget"]["recipe"] == {"dudt": "jvp"}
+
+
+def test_ablation_script_sets_the_cli_trainings_dudt(monkeypatch):
+    """`scripts/meanflow_norm_ablation.py cli --dudt M -- train ...` trains with meanflow_dudt=M."""
+    import importlib.util
+    import action_decoder.train as train_mod
+    monkeypatch.setattr(train_mod, "decoder_config", train_mod.decoder_config)     # undone after the test
+    spec = importlib.util.spec_from_file_location("ablation", ROOT / "scripts" / "meanflow_norm_ablation.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    cfg = train_mod.TrainConfig(decoder="mean_flow")
+    for dudt in ("jvp", "finite_difference"):
+        script.use_dudt(dudt)
+        assert train_mod.decoder_config(cfg, 39, 4, ["push"]).meanflow_dudt == dudt
