@@ -40,8 +40,8 @@ COLUMNS = [("DDPM K=10", "DDPM", "ode", 10), ("FM K=1", "flow_matching", "ode", 
            ("MF K=2", "mean_flow", "ode", 2), ("FM-SDE K=10", "flow_matching", "sde", 10)]
 RECIPE_FIELDS = {"ratio": "meanflow_ratio_r_neq_t", "time_dist": "meanflow_time_dist",
                  "adaptive_p": "meanflow_adaptive_p", "adaptive_c": "meanflow_adaptive_c",
-                 "flow_prediction": "flow_prediction"}
-STRING_KEYS = ("time_dist", "flow_prediction", "tangent")
+                 "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt"}
+STRING_KEYS = ("time_dist", "flow_prediction", "tangent", "dudt")
 LOSS_OPTIONS = ("one_step_share", "tangent")   # `meanflow_loss` keywords with no config field (measured, not adopted)
 
 
@@ -261,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recipe", nargs="*", default=[], metavar="KEY=VALUE",
                    help=f"MeanFlow recipe overrides, keys {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}")
+    p.add_argument("--dudt", choices=["jvp", "finite_difference"], default=None,
+                   help="MeanFlow's du/dt in training (DecoderConfig.meanflow_dudt; default: the config's)")
     p.add_argument("--out", default=None, help="directory for the JSON (default docs/benchmarks/multimodal.json "
                    "for the full run; else outputs/multimodal[-quick]/multimodal_run.json)")
     a = p.parse_args(argv)
@@ -278,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--recipe: expected KEY=VALUE with KEY in {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}, "
                              f"got {kv!r}")
         b.recipe[key] = value if key in STRING_KEYS else float(value)
+    if a.dudt is not None:
+        b.recipe["dudt"] = a.dudt
     tasks = [a.only] if a.only else ["synthetic", "obstacle"]
     try:
         results = {t: (run_synthetic if t == "synthetic" else run_obstacle)(a.decoders, b, a.seed) for t in tasks}

@@ -25,7 +25,6 @@ import argparse
 import copy
 import datetime
 import functools
-import importlib.util
 import json
 import os
 import platform
@@ -135,20 +134,76 @@ def time_size(name: str, size: tuple, reps: int, warmup: int) -> dict:
     return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows}
 
 
-def quality(seeds: List[int], steps: int, methods=("jvp", "finite_difference")) -> List[dict]:
-    """scripts/meanflow_norm_ablation.py's synthetic two-route task, jvp vs finite difference."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / "meanflow_norm_ablation.py"
-    spec = importlib.util.spec_from_file_location("meanflow_norm_ablation", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    out = []
+def quality(seeds: List[int], steps: int, methods=("jvp", "finite_difference"), tiny: bool = False,
+            save_dir: Optional[str] = None) -> List[dict]:
+    """The multimodal benchmark's synthetic two-route task (`benchmarks/multimodal.py`, the "MF K=1"
+    model: clean-chunk head, hidden 64, 2 layers, batch 128, weight EMA), trained with each du/dt.
+
+    Per (method, seed): on-route share, coverage and energy distance at K = 1 and 2 (256 states ×
+    8 samples); `train_loss`: the mean training loss over the last 100 steps (each method's own
+    target); `heldout_loss`: the EMA model's MeanFlow loss with the exact JVP target on 16 fixed
+    batches of 128 (the same batches and noise for every run). `save_dir`: each EMA model is saved
+    there as `mf_<dudt>_seed<seed>/` (for `--precision-only --checkpoint`)."""
+    from . import multimodal as mm
+
+    b = mm.Budget(steps=steps) if not tiny else mm.Budget(steps=steps, hidden=32, layers=1, eval_states=4, samples=4)
+    tol = 0.1 * mm.separation()
+    state = torch.randn(b.eval_states, 4, generator=torch.Generator().manual_seed(12345))
+    modes, rep = mm.routes(state), state.repeat_interleave(b.samples, 0)                # [N, 2, H, 4], [N·S, 4]
+    out, make = [], mm.make_policy
     for dudt in methods:
-        mod.DecoderConfig = functools.partial(DecoderConfig, meanflow_dudt=dudt)
         for seed in seeds:
-            res = {"dudt": dudt, **mod.synthetic(seed, steps, 128)}
+            logged: List[float] = []
+
+            def logging_policy(*args, **kw):
+                policy = make(*args, **kw)
+                step = policy.compute_loss
+                policy.compute_loss = lambda *x, **y: _logged(step(*x, **y), logged)
+                return policy
+            mm.make_policy, b.recipe = logging_policy, {"dudt": dudt}       # train() looks it up here
+            try:
+                policy, train_s = mm.train("mean_flow", mm.synthetic_batch, 4, 4, b, seed)
+            finally:
+                mm.make_policy = make
+            res = {"dudt": dudt, "seed": seed, "steps": steps, "train_cpu_s": train_s,
+                   "train_loss": sum(logged[-100:]) / len(logged[-100:]), "heldout_loss": _heldout(policy, mm)}
+            for k in (1, 2):
+                chunk = mm.sample(policy, rep, "ode", k, 777).reshape(b.eval_states, b.samples, 16, 4)
+                res[f"K{k}"] = mm.mode_metrics(chunk, modes, tol)
+            if save_dir:
+                policy.save_pretrained(Path(save_dir) / f"mf_{dudt}_seed{seed}")
             print(json.dumps(res), flush=True)
             out.append(res)
     return out
+
+
+def _logged(output, log: List[float]):
+    log.append(output.loss.item())
+    return output
+
+
+def _heldout(policy: ActionDecoderPolicy, mm, batches: int = 16) -> float:
+    """Mean MeanFlow loss (exact JVP target, no grad on weights) over fixed synthetic batches."""
+    exact = copy.deepcopy(policy)
+    exact.config.meanflow_dudt = "jvp"
+    data, noise = torch.Generator().manual_seed(99), torch.Generator().manual_seed(98)
+    total = 0.0
+    for _ in range(batches):
+        state, actions = mm.synthetic_batch(data, 128)
+        with torch.no_grad():
+            total += ActionDecoderPolicy.compute_loss(exact, {"state": state, "actions": actions}, noise).loss.item()
+    return total / batches
+
+
+def quality_table(rows: List[dict]) -> str:
+    lines = ["| seed | du/dt | on a route K=1 | K=2 | coverage K=1 | energy K=1 | K=2 | rms to route K=1 | "
+             "train loss (last 100) | held-out loss (JVP target) | train CPU s |", "|---" * 11 + "|"]
+    for r in rows:
+        k1, k2 = r["K1"], r["K2"]
+        lines.append(f"| {r['seed']} | {r['dudt']} | {k1['on_mode']:.0%} | {k2['on_mode']:.0%} | {k1['coverage']:.0%} | "
+                     f"{k1['energy']:.3f} | {k2['energy']:.3f} | {k1['rms_to_nearest']:.3f} | {r['train_loss']:.3f} | "
+                     f"{r['heldout_loss']:.3f} | {r['train_cpu_s']:.0f} |")
+    return "\n".join(lines)
 
 
 def precision(checkpoint: Optional[str] = None, batch: int = 256) -> dict:
@@ -227,6 +282,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", default="0", help="comma-separated seeds of the quality runs")
     p.add_argument("--quality-only", action="store_true", help="only the quality runs")
     p.add_argument("--dudt", default="jvp,finite_difference", help="comma-separated methods of the quality runs")
+    p.add_argument("--save-models", default=None, metavar="DIR", help="save each quality run's EMA model under DIR")
     p.add_argument("--precision-only", action="store_true", help="only the du/dt error table (seconds)")
     p.add_argument("--checkpoint", action="append", default=[],
                    help="a MeanFlow checkpoint whose du/dt error to measure too (repeatable)")
@@ -247,7 +303,9 @@ def main(argv=None) -> int:
             results["timing"].append(time_size(name, size, a.reps, a.warmup))
         print(table(results["timing"]), flush=True)
     if a.quality or a.quality_only:
-        results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps, a.dudt.split(","))
+        results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps, a.dudt.split(","),
+                                     save_dir=a.save_models)
+        print(quality_table(results["quality"]), flush=True)
     part = "_precision" if a.precision_only else "_quality" if a.quality_only else ""
     a.out = a.out or f"docs/benchmarks/meanflow_cost{part}.json"
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,8 @@ library's own norm runs as is.
     python scripts/meanflow_norm_ablation.py synthetic --norm sum --seed 0
     # a CLI command (e.g. Meta-World training) with the chosen norm
     python scripts/meanflow_norm_ablation.py cli --norm mean -- train --task metaworld/push ...
+    # a CLI training with MeanFlow's du/dt chosen (`DecoderConfig.meanflow_dudt`; the CLI has no flag)
+    python scripts/meanflow_norm_ablation.py cli --dudt jvp -- train --task metaworld/push --decoder mean_flow ...
 """
 
 from __future__ import annotations
@@ -47,6 +49,19 @@ def use_norm(norm: str) -> None:
     policy_mod.meanflow_loss = variant
 
 
+def use_dudt(dudt: str) -> None:
+    """Make `action-decoder train` build its DecoderConfig with `meanflow_dudt=dudt`."""
+    import action_decoder.train as train_mod
+    build = train_mod.decoder_config
+
+    def with_dudt(*args, **kw) -> DecoderConfig:
+        cfg = build(*args, **kw)
+        cfg.meanflow_dudt = dudt
+        cfg.validate()
+        return cfg
+    train_mod.decoder_config = with_dudt
+
+
 def routes(state: torch.Tensor, H: int = 16) -> torch.Tensor:
     """The two routes [B, 2, H, 4] for states [B, 4]: a shared state-dependent base ± a bend."""
     h = torch.linspace(0, 1, H)
@@ -55,11 +70,12 @@ def routes(state: torch.Tensor, H: int = 16) -> torch.Tensor:
     return torch.stack([base + bend, base - bend], 1)
 
 
-def synthetic(seed: int, steps: int, batch: int, eval_states: int = 256, samples: int = 8) -> dict:
+def synthetic(seed: int, steps: int, batch: int, eval_states: int = 256, samples: int = 8, dudt=None) -> dict:
     torch.manual_seed(seed)
     cfg = DecoderConfig(decoder_type="mean_flow", state_dim=4, action_dim=4, action_chunk_size=16,
                         hidden_size=64, num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2,
-                        normalization_mode="identity", num_inference_timesteps=1)
+                        normalization_mode="identity", num_inference_timesteps=1,
+                        **({"meanflow_dudt": dudt} if dudt else {}))
     policy = ActionDecoderPolicy(cfg)
     params = [p for p in policy.parameters() if p.requires_grad and p is not policy.sigma]
     opt = torch.optim.AdamW(params, lr=1e-3, weight_decay=1e-4)
@@ -92,7 +108,9 @@ def synthetic(seed: int, steps: int, batch: int, eval_states: int = 256, samples
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("what", choices=["synthetic", "cli"])
-    p.add_argument("--norm", choices=["sum", "mean"], required=True)
+    p.add_argument("--norm", choices=["sum", "mean"], default=None, help="default: the library's (mean)")
+    p.add_argument("--dudt", choices=["jvp", "finite_difference"], default=None,
+                   help="MeanFlow's du/dt in training (default: DecoderConfig's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=128)
@@ -100,9 +118,12 @@ def main(argv=None) -> int:
     cut = argv.index("--") if "--" in argv else len(argv)          # after "--": the CLI's own arguments
     a, rest = p.parse_args(argv[:cut]), argv[cut + 1:]
     torch.set_num_threads(1)
-    use_norm(a.norm)
+    use_norm(a.norm or library_norm())
+    if a.dudt:
+        use_dudt(a.dudt)
     if a.what == "synthetic":
-        print(json.dumps({"norm": a.norm, **synthetic(a.seed, a.steps, a.batch)}), flush=True)
+        res = synthetic(a.seed, a.steps, a.batch, dudt=a.dudt)
+        print(json.dumps({"norm": a.norm or library_norm(), "dudt": a.dudt, **res}), flush=True)
         return 0
     from action_decoder.cli import main as cli_main
     return cli_main(rest)

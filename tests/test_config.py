@@ -144,3 +144,23 @@ def test_bad_camera_fields_are_one_line_each(over, match):
     with pytest.raises(ValueError, match=match) as err:
         DecoderConfig(**over)
     assert "\n" not in str(err.value)
+
+
+def test_new_configs_take_the_finite_difference_while_saved_ones_keep_their_dudt(tmp_path):
+    """The default du/dt of a new config is the central difference; a checkpoint's config.json reads
+    back with the method its weights trained with: format 3 stores it, format 2 (older than the field)
+    reads as the JVP, its behaviour when it was written."""
+    from action_decoder.config import ADDED_FIELDS
+
+    assert DecoderConfig().meanflow_dudt == "finite_difference"
+    assert ADDED_FIELDS[3]["meanflow_dudt"] == "jvp"
+    path = tmp_path / "config.json"
+    DecoderConfig(decoder_type="mean_flow", meanflow_dudt="jvp").to_json(path)
+    saved = json.loads(path.read_text())
+    assert DecoderConfig.from_json(path).meanflow_dudt == "jvp"
+    path.write_text(json.dumps({**{k: v for k, v in saved.items() if k != "meanflow_dudt"}, "format_version": 3}))
+    with pytest.raises(ValueError, match=r"missing field\(s\) \['meanflow_dudt'\]"):
+        DecoderConfig.from_json(path)                       # never completed with today's default
+    later = {k for version, added in ADDED_FIELDS.items() if version > 2 for k in added}
+    path.write_text(json.dumps({**{k: v for k, v in saved.items() if k not in later}, "format_version": 2}))
+    assert DecoderConfig.from_json(path).meanflow_dudt == "jvp"

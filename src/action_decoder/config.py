@@ -87,11 +87,13 @@ class DecoderConfig:
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
-    # How training gets du/dt for the r ≠ t rows: "jvp" (exact, forward-mode AD; any dtype) or
-    # "finite_difference" (central difference in one no-grad call; float32/float64 weights only).
-    # A step costs 1.45–1.55× a flow-matching step with the JVP, 1.20–1.23× with the difference,
-    # but the difference trained worse on 2 of 3 seeds (docs/benchmarks/meanflow_cost.md).
-    meanflow_dudt: str = "jvp"
+    # How training gets du/dt for the r ≠ t rows: "finite_difference" (central difference in one
+    # no-grad call; float32/float64 weights only) or "jvp" (exact, forward-mode AD; any dtype, and
+    # autocast). A step costs 1.20–1.23× a flow-matching step with the difference, 1.45–1.55× with
+    # the JVP; the two train alike (same on-route share within seed noise, 3 seeds of the multimodal
+    # task: docs/benchmarks/meanflow_cost.md). A saved config.json carries the value it trained
+    # with; format-2 files, older than the field, read as "jvp" (ADDED_FIELDS).
+    meanflow_dudt: str = "finite_difference"
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
