@@ -9,7 +9,7 @@ from action_decoder import (ActionDecoderPolicy, DecoderConfig, ddpm_loss, flow_
                             sample_ddpm)
 from action_decoder.flows.ddpm import inference_scheduler
 from action_decoder.flows import losses
-from action_decoder.flows.losses import sample_meanflow_times
+from action_decoder.flows.losses import dudt_finite_difference, sample_meanflow_times
 from action_decoder.oracles import Gaussian, GaussianMixture, energy_distance
 
 
@@ -389,8 +389,6 @@ def test_meanflow_dudt_is_validated():
     with pytest.raises(ValueError, match="meanflow_dudt: 'finite_difference' needs float32 or float64 inputs, got torch.bfloat16"):
         meanflow_target(lambda x, t, r: x, a.bfloat16(), torch.rand(8).bfloat16(), torch.ones(8).bfloat16(),
                         a.bfloat16(), dudt="finite_difference")
-    with torch.autocast("cpu", dtype=torch.bfloat16), pytest.raises(ValueError, match="autocast"):
-        meanflow_loss(lambda x, t, r: x, a, dudt="finite_difference")
     bf16 = _expert_policy(meanflow_dudt="finite_difference").to(torch.bfloat16)
     batch = {"state": torch.randn(8, 7), "actions": a}
     with pytest.raises(ValueError, match="meanflow_dudt: 'finite_difference' needs float32 or float64 weights, "
@@ -416,3 +414,21 @@ def test_policy_trains_with_the_configured_dudt():
             torch.func.jvp = real_jvp
         assert bool(calls) == (dudt == "jvp")
     torch.testing.assert_close(out["finite_difference"], out["jvp"], rtol=1e-3, atol=0)
+
+
+def test_finite_difference_under_autocast_differences_in_float32():
+    """Mixed precision: the difference call runs with autocast off, so du/dt equals the float32 one."""
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(4 + 2, 32), torch.nn.Tanh(), torch.nn.Linear(32, 4))
+    u = lambda x, t, r: net(torch.cat([x, t[:, None, None].expand(-1, x.shape[1], 1),
+                                       r[:, None, None].expand(-1, x.shape[1], 1)], -1))
+    z, v = torch.randn(8, 16, 4), torch.randn(8, 16, 4)
+    t, r = torch.rand(8) * 0.5, 0.5 + torch.rand(8) * 0.5
+    plain = dudt_finite_difference(u, z, t, r, v)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = dudt_finite_difference(u, z, t, r, v)
+        noisy = (u(z + 3e-5 * v, t + 3e-5, r).float() - u(z - 3e-5 * v, t - 3e-5, r).float()) / 6e-5
+    torch.testing.assert_close(mixed, plain, rtol=0, atol=0)
+    assert (noisy - plain).abs().max() > 10 * plain.abs().max() * 1e-3      # in bf16 it would be noise
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.isfinite(meanflow_loss(u, torch.randn(8, 16, 4), dudt="finite_difference")).all()

@@ -74,15 +74,15 @@ def dudt_finite_difference(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: T
 
     One call over 2n rows [z + h·v, z − h·v] at times t ± h, r fixed, h = `fd_step(z.dtype)`;
     returns (u₊ − u₋)/(2h) [n, H, D] in v's dtype. The network must compute in float32 or
-    float64: under autocast the difference would be rounding noise, so that raises.
+    float64: under autocast (mixed-precision training) this call runs with autocast off, its
+    floating-point conditioning cast to z's dtype, so the difference is not rounding noise.
     """
-    if torch.is_autocast_enabled(z.device.type):
-        raise ValueError("meanflow_dudt: 'finite_difference' needs the network in float32 or float64, "
-                         "got autocast enabled (use 'jvp' with autocast)")
     h = fd_step(z.dtype)
-    twice = {k: _map_tensors(c, lambda x: torch.cat([x, x])) for k, c in (cond or {}).items()}
+    cast = torch.is_autocast_enabled(z.device.type)
+    double = lambda x: torch.cat([x, x]).to(z.dtype) if cast and x.is_floating_point() else torch.cat([x, x])
+    twice = {k: _map_tensors(c, double) for k, c in (cond or {}).items()}
     step = h * v.to(z.dtype)
-    with torch.no_grad():
+    with torch.no_grad(), torch.autocast(z.device.type, enabled=False):
         out = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **twice), torch.cat([z + step, z - step]),
                            torch.cat([t + h, t - h]), torch.cat([r, r]), dtype=v.dtype, name="avg_velocity")
     plus, minus = out.chunk(2)                                            # [n, H, D] each
