@@ -219,3 +219,32 @@ def test_validation_on_held_out_chunks_passes_their_images():
     out = validation_metrics(policy, val, 1, torch.device("cpu"))
     assert np.isfinite(out["val_loss"]) and out["frames"] == 4
     assert seen and all(s == (4, 2, 3, 16, 16) for s in seen)
+
+
+def test_training_on_the_lerobot_camera_fixture_uses_the_cameras():
+    """On LeRobot 0.4.4's v3.0 camera fixture: a training step reaches the image encoder, and the
+    sampled chunk (fixed noise) follows the frames it is shown."""
+    from pathlib import Path
+
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+    from action_decoder.data import ChunkDataset, load_dataset
+
+    data = load_dataset(Path(__file__).parent / "data" / "lerobot" / "v30_cams", image_size=32)
+    torch.manual_seed(0)
+    cfg = DecoderConfig(decoder_type="flow_matching", state_dim=data.states.shape[1], action_dim=data.actions.shape[1],
+                        action_chunk_size=4, hidden_size=32, num_hidden_layers=1, num_inference_timesteps=2,
+                        cameras=list(data.images), image_size=32)
+    policy = ActionDecoderPolicy(cfg, data.stats)
+    items = [ChunkDataset(data, horizon=4)[i] for i in (0, 15, 30)]                 # frames of three episodes
+    batch = {k: torch.stack([it[k] for it in items]) for k in ("state", "actions", "images")}
+    assert batch["images"].shape == (3, 2, 3, 32, 32) and batch["images"].dtype == torch.uint8
+    policy(batch).loss.backward()
+    grads = [p.grad for p in policy.model.image_encoder.parameters()]
+    assert all(g is not None for g in grads) and sum(float(g.abs().sum()) for g in grads) > 0
+    policy.eval()
+    noise = torch.randn(3, 4, data.actions.shape[1], generator=torch.Generator().manual_seed(1))
+    chunk = lambda images: policy.predict_action_chunk({"state": batch["state"], "images": images}, noise=noise)
+    same = batch["images"][[0, 0, 0]]                                               # episode 0's frame in every row
+    swapped = chunk(same)
+    assert torch.equal(chunk(batch["images"])[0], swapped[0])                         # row 0 saw the same frame
+    assert not torch.allclose(chunk(batch["images"])[1:], swapped[1:])                # rows 1, 2 saw other frames
