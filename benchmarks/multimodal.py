@@ -26,7 +26,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 import action_decoder.policy as policy_mod
@@ -57,7 +56,7 @@ def mode_metrics(samples: torch.Tensor, modes: torch.Tensor, tol: float) -> dict
     the reference side, V-statistic on the samples, so exactly 0 for samples split evenly on the
     modes and ≥ 0 always), averaged over states.
     """
-    N, S, M = samples.shape[0], samples.shape[1], modes.shape[1]
+    M = modes.shape[1]
     rms = lambda a, b: (a - b).square().mean((-2, -1)).sqrt()
     to_mode = rms(samples[:, :, None], modes[:, None])                          # [N, S, M]
     dist, which = to_mode.min(2)                                                 # [N, S]
@@ -136,6 +135,17 @@ def make_policy(decoder: str, state_dim: int, action_dim: int, b: Budget) -> Act
     return ActionDecoderPolicy(cfg)
 
 
+def optimizer_step(policy, batch: dict, noise: torch.Generator, opt, sched, params) -> torch.Tensor:
+    """One AdamW step on the policy's loss, gradients clipped at norm 1, then the schedule; returns the loss."""
+    loss = policy.compute_loss(batch, noise).loss
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, 1.0)
+    opt.step()
+    sched.step()
+    return loss
+
+
 def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: int) -> tuple:
     """Train with train.py's optimiser, schedule and weight EMA; returns (EMA policy in eval mode, s)."""
     torch.manual_seed(seed)
@@ -150,12 +160,7 @@ def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: 
     t0 = time.process_time()
     for _ in range(b.steps):
         state, actions = draw(data, b.batch)
-        loss = policy.compute_loss({"state": state, "actions": actions}, noise).loss
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        opt.step()
-        sched.step()
+        optimizer_step(policy, {"state": state, "actions": actions}, noise, opt, sched, params)
         ema.update_parameters(policy)
     trained = ema.module.eval()
     return trained, round(time.process_time() - t0, 1)

@@ -20,12 +20,16 @@ import json
 import math
 import sys
 import time
+from pathlib import Path
 
 import torch
 
 import action_decoder.policy as policy_mod
 from action_decoder import ActionDecoderPolicy, DecoderConfig
 from action_decoder.flows import losses
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))       # the repository root: `benchmarks`
+from benchmarks.multimodal import optimizer_step, routes, synthetic_batch  # noqa: E402
 
 def library_norm() -> str:
     """Which norm `meanflow_loss` computes: with p = 0, u ≡ 0 and zero actions its loss is the
@@ -62,14 +66,6 @@ def use_dudt(dudt: str) -> None:
     train_mod.decoder_config = with_dudt
 
 
-def routes(state: torch.Tensor, H: int = 16) -> torch.Tensor:
-    """The two routes [B, 2, H, 4] for states [B, 4]: a shared state-dependent base ± a bend."""
-    h = torch.linspace(0, 1, H)
-    base = 0.5 * state[:, None, :] * h[None, :, None]                                   # [B, H, 4]
-    bend = torch.sin(math.pi * h)[:, None] * torch.tensor([1.0, -0.6, 0.8, 0.4])        # [H, 4]
-    return torch.stack([base + bend, base - bend], 1)
-
-
 def synthetic(seed: int, steps: int, batch: int, eval_states: int = 256, samples: int = 8, dudt=None) -> dict:
     torch.manual_seed(seed)
     cfg = DecoderConfig(decoder_type="mean_flow", state_dim=4, action_dim=4, action_chunk_size=16,
@@ -84,15 +80,8 @@ def synthetic(seed: int, steps: int, batch: int, eval_states: int = 256, samples
     data, noise = torch.Generator().manual_seed(seed * 1000), torch.Generator().manual_seed(seed * 1000 + 500)
     t0 = time.time()
     for _ in range(steps):
-        state = torch.randn(batch, 4, generator=data)
-        pick = torch.randint(0, 2, (batch,), generator=data)
-        actions = routes(state)[torch.arange(batch), pick]                               # [B, H, 4]
-        loss = policy.compute_loss({"state": state, "actions": actions}, noise).loss
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        opt.step()
-        sched.step()
+        state, actions = synthetic_batch(data, batch)                                    # [B, 4], [B, H, 4]
+        loss = optimizer_step(policy, {"state": state, "actions": actions}, noise, opt, sched, params)
     policy.eval()
     state = torch.randn(eval_states, 4, generator=torch.Generator().manual_seed(12345)).repeat_interleave(samples, 0)
     with torch.no_grad():
