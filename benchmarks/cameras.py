@@ -57,7 +57,7 @@ def train_command(task: str, seed: int, decoder: str, condition: str, args, out:
            "--output-dir", str(out), "--no-progress"]
     if condition == "image":
         cmd += ["--cameras", args.camera, "--image-size", str(args.image_size), "--image-encoder", args.image_encoder,
-                "--state-layout", "metaworld_proprio"]
+                "--image-shift", str(args.image_shift), "--state-layout", "metaworld_proprio"]
     else:
         cmd += ["--state-layout", "metaworld"]
     return cmd
@@ -107,6 +107,7 @@ def run_one(task: str, seed: int, decoder: str, condition: str, args) -> Optiona
             "sampler": res["sampler"], "steps": res["steps"], "train_steps": args.steps, "demos": args.demos,
             "camera": args.camera if condition == "image" else None,
             "image_size": args.image_size if condition == "image" else None,
+            "image_shift": args.image_shift if condition == "image" else None,
             "train_s": float(trained[-1]) if trained else None, **latency(final, args.latency_reps)}
 
 
@@ -236,12 +237,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--conditions", default=",".join(CONDITIONS), help="state, image or both")
     parser.add_argument("--seeds", default="0")
     parser.add_argument("--demos", type=int, default=10)
-    parser.add_argument("--steps", type=int, default=3000, help="training steps of every policy")
+    parser.add_argument("--steps", type=int, default=1500, help="training steps of every policy (the CLI's default)")
     parser.add_argument("--batch-size", type=int, default=128)
     parser.add_argument("--episodes", type=int, default=50, help="closed-loop episodes per policy")
     parser.add_argument("--camera", default="corner2", help="the Meta-World camera the image policies see")
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--image-encoder", default="conv", choices=("conv", "resnet18"))
+    parser.add_argument("--image-shift", type=int, default=None,
+                        help="training-time random shift of the frames, pixels (default: the config's)")
     parser.add_argument("--latency-reps", type=int, default=30)
     parser.add_argument("--runs", default="runs/cameras")
     parser.add_argument("--results", default="docs/benchmarks/cameras.json")
@@ -250,6 +253,10 @@ def main(argv: Optional[list[str]] = None) -> int:
                         help="only time the image encoders per chunk (no training); prints a markdown table")
     argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
+    if args.image_shift is None:
+        from action_decoder import DecoderConfig
+
+        args.image_shift = DecoderConfig.image_shift
     if args.encoder_cost:
         print(encoder_table(encoder_cost(args.image_size, args.latency_reps)), flush=True)
         return 0
@@ -276,8 +283,8 @@ def main(argv: Optional[list[str]] = None) -> int:
               f"on {date}, {platform.processor() or platform.machine()} (torch {torch.__version__}, "
               f"{torch.get_num_threads()} thread(s)); {args.demos} demonstrations per task, {args.steps} training "
               f"steps at batch {args.batch_size}, camera `{args.camera}` at {args.image_size} px "
-              f"({args.image_encoder} encoder). The image policies read the hand position and gripper only "
-              f"(`metaworld_proprio`); the state policies the whole 39-d state (`metaworld`). Latency: B = 1, "
+              f"({args.image_encoder} encoder, training shift {args.image_shift} px). The image policies read the "
+              f"hand position and gripper only (`metaworld_proprio`); the state policies the whole 39-d state (`metaworld`). Latency: B = 1, "
               f"the config's sampler, one torch thread.\n")
     write_table(Path(args.table), merged, header)
     print(f"table: {args.table}", flush=True)

@@ -65,8 +65,8 @@ def test_difficulty_follows_the_task_groups():
 
 
 def _args(**kw):
-    base = dict(demos=10, steps=3000, batch_size=128, episodes=50, camera="corner2", image_size=64,
-                image_encoder="conv")
+    base = dict(demos=10, steps=1500, batch_size=128, episodes=50, camera="corner2", image_size=64,
+                image_encoder="conv", image_shift=2)
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -76,6 +76,7 @@ def test_image_runs_differ_from_state_runs_only_in_what_the_policy_sees(tmp_path
     assert state[state.index("--state-layout") + 1] == "metaworld"
     assert image[image.index("--state-layout") + 1] == "metaworld_proprio"
     assert image[image.index("--cameras") + 1] == "corner2" and image[image.index("--image-size") + 1] == "64"
+    assert image[image.index("--image-shift") + 1] == "2" and "--image-shift" not in state
     common = [a for a in state if a not in ("--state-layout", "metaworld")]
     assert all(a in image for a in common)
     from action_decoder.train import TrainConfig

@@ -69,7 +69,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     image_tokens_per_camera: int = 4
     image_encoder_pretrained: str | None = None
     freeze_image_encoder: bool = False
-    image_shift: int = 4
+    image_shift: int = 0
     # Task strings, by task index (filled from the dataset).
     tasks: list[str] = field(default_factory=list)
 

@@ -17,7 +17,8 @@ to the expert's width, plus a learned embedding per cell and per camera.
 
 Augmentation (train() mode only; eval() is deterministic): each frame is shifted by a random
 integer offset in [−k, k]² pixels (k = `image_shift`): padded by k with its edge pixels and
-cropped back (DrQ, Diffusion Policy).
+cropped back (DrQ, Diffusion Policy). The default k is 0: where an object moves by fewer pixels
+across layouts than k, the shift hides where it is.
 """
 
 from __future__ import annotations
