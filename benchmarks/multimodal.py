@@ -3,6 +3,7 @@
     OMP_NUM_THREADS=1 python -m benchmarks multimodal            # → docs/benchmarks/multimodal.{md,json}
     python -m benchmarks multimodal --quick                       # fewer steps → outputs/multimodal-quick/
     python -m benchmarks multimodal --only synthetic --decoders mean_flow --recipe one_step_share=0.25
+    python -m benchmarks multimodal --only synthetic --decoders mean_flow --recipe distill=1   # FM teacher
 
 (a) synthetic: state s ~ N(0, I₄); the chunk [16, 4] is one of two routes
     0.5·s·h ± sin(πh)·(1, −0.6, 0.8, 0.4), h ∈ [0, 1], 50/50 (mode separation ≈ 1.0 RMS).
@@ -42,6 +43,9 @@ RECIPE_FIELDS = {"ratio": "meanflow_ratio_r_neq_t", "time_dist": "meanflow_time_
                  "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt"}
 STRING_KEYS = ("time_dist", "flow_prediction", "tangent", "dudt")
 LOSS_OPTIONS = ("one_step_share", "tangent")   # `meanflow_loss` keywords with no config field (measured, not adopted)
+TRAIN_OPTIONS = ("distill",)   # recipe keys of this benchmark's training loop (measured, not in the library)
+TEACHER_STEPS = 10             # Euler steps of the flow-matching teacher's ODE for `distill`
+RECIPE_KEYS = sorted((*RECIPE_FIELDS, *LOSS_OPTIONS, *TRAIN_OPTIONS))
 
 
 # ----------------------------------------------------------------------------------------- metrics
@@ -135,9 +139,24 @@ def make_policy(decoder: str, state_dim: int, action_dim: int, b: Budget) -> Act
     return ActionDecoderPolicy(cfg)
 
 
-def optimizer_step(policy, batch: dict, noise: torch.Generator, opt, sched, params) -> torch.Tensor:
-    """One AdamW step on the policy's loss, gradients clipped at norm 1, then the schedule; returns the loss."""
+def distillation_term(student, teacher, state: torch.Tensor, noise: torch.Generator) -> torch.Tensor:
+    """Mean squared distance between the student's one-step chunk and a flow-matching teacher's
+    K = TEACHER_STEPS ODE chunk from the same noise (the teacher's noise → data coupling)."""
+    cfg = student.config
+    z = torch.randn(state.shape[0], cfg.action_chunk_size, cfg.action_dim, generator=noise)   # [B, H, D]
+    with torch.no_grad():
+        target = teacher.sample({"state": state}, sampler="ode", steps=TEACHER_STEPS, noise=z).actions
+    one = student.sample({"state": state}, sampler="ode", steps=1, noise=z).actions           # [B, H, D]
+    return (one - target).square().mean()
+
+
+def optimizer_step(policy, batch: dict, noise: torch.Generator, opt, sched, params, teacher=None,
+                   distill: float = 0.0) -> torch.Tensor:
+    """One AdamW step on the policy's loss (plus `distill` × `distillation_term` with a teacher),
+    gradients clipped at norm 1, then the schedule; returns the loss."""
     loss = policy.compute_loss(batch, noise).loss
+    if teacher is not None and distill > 0:
+        loss = loss + distill * distillation_term(policy, teacher, batch["state"], noise)
     opt.zero_grad()
     loss.backward()
     torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -147,7 +166,16 @@ def optimizer_step(policy, batch: dict, noise: torch.Generator, opt, sched, para
 
 
 def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: int) -> tuple:
-    """Train with train.py's optimiser, schedule and weight EMA; returns (EMA policy in eval mode, s)."""
+    """Train with train.py's optimiser, schedule and weight EMA; returns (EMA policy in eval mode, s).
+
+    With recipe `distill` = λ (MeanFlow only), a flow-matching teacher is trained first on the same
+    budget and the student's loss adds λ × `distillation_term`; the seconds include the teacher's."""
+    distill = float(b.recipe.get("distill", 0.0)) if decoder == "mean_flow" else 0.0
+    teacher, teacher_s = None, 0.0
+    if distill > 0:
+        teacher, teacher_s = train("flow_matching", draw, state_dim, action_dim,
+                                   Budget(**{**b.__dict__, "recipe": {}}), seed)
+        teacher.requires_grad_(False)
     torch.manual_seed(seed)
     policy = make_policy(decoder, state_dim, action_dim, b)
     policy.sigma.requires_grad_(False)
@@ -160,10 +188,10 @@ def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: 
     t0 = time.process_time()
     for _ in range(b.steps):
         state, actions = draw(data, b.batch)
-        optimizer_step(policy, {"state": state, "actions": actions}, noise, opt, sched, params)
+        optimizer_step(policy, {"state": state, "actions": actions}, noise, opt, sched, params, teacher, distill)
         ema.update_parameters(policy)
     trained = ema.module.eval()
-    return trained, round(time.process_time() - t0, 1)
+    return trained, round(time.process_time() - t0 + teacher_s, 1)
 
 
 def sample(policy, state: torch.Tensor, sampler: str, steps: int, seed: int) -> torch.Tensor:
@@ -265,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=None, help="training steps (default 1500)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recipe", nargs="*", default=[], metavar="KEY=VALUE",
-                   help=f"MeanFlow recipe overrides, keys {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}")
+                   help=f"MeanFlow recipe overrides, keys {RECIPE_KEYS}")
     p.add_argument("--dudt", choices=["jvp", "finite_difference"], default=None,
                    help="MeanFlow's du/dt in training (DecoderConfig.meanflow_dudt; default: the config's)")
     p.add_argument("--out", default=None, help="directory for the JSON (default docs/benchmarks/multimodal.json "
@@ -281,8 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         b.steps = a.steps
     for kv in a.recipe:
         key, sep, value = kv.partition("=")
-        if not sep or key not in (*RECIPE_FIELDS, *LOSS_OPTIONS):
-            raise ValueError(f"--recipe: expected KEY=VALUE with KEY in {sorted((*RECIPE_FIELDS, *LOSS_OPTIONS))}, "
+        if not sep or key not in RECIPE_KEYS:
+            raise ValueError(f"--recipe: expected KEY=VALUE with KEY in {RECIPE_KEYS}, "
                              f"got {kv!r}")
         b.recipe[key] = value if key in STRING_KEYS else float(value)
     if a.dudt is not None:

@@ -148,3 +148,36 @@ def test_tiny_benchmark_runs(tmp_path, capsys):
     assert "| on a mode" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--recipe"):
         mm.main(["--tiny", "--recipe", "ratio"])
+
+
+def test_distillation_term_fits_the_student_one_step_map_to_the_teacher_chunk_from_the_same_noise():
+    """Trained on the term alone, the student's 1-step chunk approaches the teacher's 10-step ODE
+    chunk of the same noise (a map of the noise, not just its mean: the teacher's chunks spread far
+    more than the final gap), and no gradient reaches the teacher."""
+    b = mm.Budget(hidden=32, layers=1)
+    torch.manual_seed(0)
+    teacher = mm.make_policy("flow_matching", 4, 4, b).eval()
+    teacher.requires_grad_(False)
+    student = mm.make_policy("mean_flow", 4, 4, b)
+    opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=3e-3)
+    state = torch.randn(64, 4, generator=torch.Generator().manual_seed(1))
+    for step in range(300):
+        loss = mm.distillation_term(student, teacher, state, torch.Generator().manual_seed(step % 8))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    z = torch.randn(64, 16, 4, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        target = teacher.sample({"state": state}, sampler="ode", steps=mm.TEACHER_STEPS, noise=z).actions
+    spread = (target - target.mean(0)).square().mean().item()            # what a noise-blind map would leave
+    gen = torch.Generator().manual_seed(3)
+    assert mm.distillation_term(student, teacher, state, gen).item() < 0.1 * spread
+    assert all(p.grad is None for p in teacher.parameters())
+
+
+def test_distill_recipe_trains_a_teacher_and_counts_its_time(tmp_path):
+    assert mm.main(["--tiny", "--only", "synthetic", "--decoders", "mean_flow", "--out", str(tmp_path),
+                    "--recipe", "distill=1"]) == 0
+    data = json.loads((tmp_path / "multimodal_run.json").read_text())
+    assert data["meta"]["budget"]["recipe"] == {"distill": 1.0}
+    assert set(data["results"]["synthetic"]) == {"MF K=1", "MF K=2"}
