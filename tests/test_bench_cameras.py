@@ -92,3 +92,24 @@ def test_the_command_refuses_unknown_conditions(capsys):
     with pytest.raises(SystemExit):
         cameras.main(["--conditions", "state,depth"])
     assert "--conditions: expected a comma-separated subset of ['state', 'image']" in capsys.readouterr().err
+
+
+def test_a_finished_run_is_reused_whichever_way_the_task_is_spelled(tmp_path, monkeypatch):
+    """`metaworld/drawer-open` and `metaworld/drawer-open-v3` name one run directory: a complete run
+    is read back (its eval summary, training time and a latency of its checkpoint), never retrained."""
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+
+    final = tmp_path / "drawer-open_s0_flow_matching_state" / "final"
+    ActionDecoderPolicy(DecoderConfig(decoder_type="flow_matching", state_dim=39, action_dim=4, hidden_size=32,
+                                      num_hidden_layers=1, num_attention_heads=2, num_key_value_heads=1,
+                                      num_inference_timesteps=2)).save_pretrained(final)
+    (final / "eval_ode_k2_n4_seed0.json").write_text(json.dumps({
+        "success_rate": 0.7, "episodes_per_task": 50, "sampler": "ode", "steps": 2,
+        "results": [{"task": "drawer-open-v3"}]}))
+    (final.parent / "log.txt").write_text("saved final (123 s of training)\n")
+    monkeypatch.setattr(cameras.subprocess, "run", lambda *a, **k: pytest.fail(f"retrained: {a}"))
+    args = _args(runs=str(tmp_path), latency_reps=2)
+    for task in ("metaworld/drawer-open", "metaworld/drawer-open-v3"):
+        r = cameras.run_one(task, 0, "flow_matching", "state", args)
+        assert (r["task"], r["success"], r["train_s"], r["steps"]) == ("drawer-open-v3", 0.7, 123.0, 2)
+        assert r["latency_ms"] > 0 and "encoder_ms" not in r
