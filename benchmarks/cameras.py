@@ -43,11 +43,15 @@ GAP_TARGET = 15.0          # points: image success on the easy tasks within this
 TRAINED = re.compile(r"\((\d+(?:\.\d+)?) s of training\)")
 
 
+def short_name(task: str) -> str:
+    """metaworld/drawer-open, drawer-open-v3 → drawer-open (one run directory for every spelling)."""
+    return task.split("/")[-1].removesuffix("-v3")
+
+
 def difficulty(task: str) -> str:
     from action_decoder.envs.metaworld_tasks import TASK_GROUPS
 
-    name = task.split("/")[-1]
-    name = name if name.endswith("-v3") else f"{name}-v3"
+    name = f"{short_name(task)}-v3"
     return next((group for group, tasks in TASK_GROUPS.items() if name in tasks), "easy")
 
 
@@ -93,8 +97,7 @@ def latency(checkpoint: Path, reps: int, warmup: int = 3) -> dict:
 
 def run_one(task: str, seed: int, decoder: str, condition: str, args) -> Optional[dict]:
     """Train and evaluate one policy (unless its run directory holds them), then time it; one result row."""
-    name = task.split("/")[-1].removesuffix("-v3")          # metaworld/drawer-open and drawer-open-v3: one run
-    run = Path(args.runs) / f"{name}_s{seed}_{decoder}_{condition}"
+    run = Path(args.runs) / f"{short_name(task)}_s{seed}_{decoder}_{condition}"
     final = run / "final"
     log = run / "log.txt"
     if not list(final.glob("eval_*.json")):
@@ -286,8 +289,8 @@ def main(argv: Optional[list[str]] = None) -> int:
               f"{torch.get_num_threads()} thread(s)); {args.demos} demonstrations per task, {args.steps} training "
               f"steps at batch {args.batch_size}, camera `{args.camera}` at {args.image_size} px "
               f"({args.image_encoder} encoder, training shift {args.image_shift} px). The image policies read the "
-              f"hand position and gripper only (`metaworld_proprio`); the state policies the whole 39-d state (`metaworld`). Latency: B = 1, "
-              f"the config's sampler, one torch thread.\n")
+              f"hand position and gripper only (`metaworld_proprio`); the state policies the whole 39-d state "
+              f"(`metaworld`). Latency: B = 1, the config's sampler, one torch thread.\n")
     write_table(Path(args.table), merged, header)
     print(f"table: {args.table}", flush=True)
     return 0
