@@ -1,20 +1,27 @@
 """RL fine-tuning benchmark: behaviour-clone a policy from 3 demonstrations, then fine-tune it
-with `action-decoder finetune` under a CPU-time budget, and compare success on the same 50
-evaluation layouts before and after.
+with `action-decoder finetune` at its defaults under a CPU-time budget, and compare success on
+the same 50 evaluation layouts before and after.
 
-    python -m benchmarks.rl_finetune --jobs 2                                  # the default grid
+    python -m benchmarks.rl_finetune --select --jobs 2        # BC sweep over all 50 tasks: the task set and its split
+    python -m benchmarks.rl_finetune --tasks report --jobs 2  # the report half, FM and MF: the table
+    python -m benchmarks.rl_finetune --tasks dev --seeds 0 1  # the development half, two fine-tuning seeds
     python -m benchmarks.rl_finetune --tasks metaworld/push --decoders flow_matching --cpu-minutes 10
 
-Each (task, decoder) run lives in its own directory under --runs (suffixed `_sac` for SAC);
-finished steps are skipped and an interrupted fine-tuning resumes, so the grid can be stopped
-and continued. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json
-(which keeps rows whose run directories are gone), and the table and a plot of the learning
-curves are written from it; text below the table's notes marker is kept.
+The task set comes from a rule, not by hand (`select`): every Meta-World task whose 3-demo
+flow-matching BC policy succeeds in 15–65 % of 50 evaluation episodes (seed 0). The tasks the
+defaults were developed on (`TUNED_ON`) belong to the development half; the others are split by a
+hash of their name (`half`), fixed before any run. Each (task, decoder) run lives in its own
+directory under --runs (suffixed `_sac` for SAC); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
+steps are skipped and an interrupted fine-tuning resumes, so the grid can be stopped and
+continued. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json (which
+keeps rows whose run directories are gone), and the table and a plot of the learning curves are
+written from it; text below the table's notes marker is kept.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -26,6 +33,53 @@ from pathlib import Path
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
+BAND = (0.15, 0.65)
+"""The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
+policy that succeeds often enough for its rollouts to carry a signal."""
+TUNED_ON = ("door-lock-v3", "push-v3", "push-wall-v3", "reach-v3", "reach-wall-v3", "sweep-into-v3")
+"""Tasks `finetune`'s defaults were developed on: development half whatever their hash."""
+RULE_DECODER = "flow_matching"
+
+
+def half(task: str) -> str:
+    """"dev" or "report": `TUNED_ON` tasks are dev; the others by the parity of sha256(name)."""
+    if task in TUNED_ON:
+        return "dev"
+    return "report" if int(hashlib.sha256(task.encode()).hexdigest(), 16) % 2 else "dev"
+
+
+def split(bc: dict[str, float], band: tuple[float, float] = BAND) -> dict:
+    """The task set of the protocol from 3-demo BC success per task: the in-band tasks, by half."""
+    chosen = sorted(t for t, rate in bc.items() if band[0] <= rate <= band[1])
+    return {"band": list(band), "bc": dict(sorted(bc.items())),
+            "dev": [t for t in chosen if half(t) == "dev"], "report": [t for t in chosen if half(t) == "report"]}
+
+
+def select(args) -> dict:
+    """BC-train and evaluate every Meta-World task with the benchmark's recipe, then `split`; the
+    BC policies are those the fine-tuning runs start from."""
+    from action_decoder.envs.metaworld_tasks import all_tasks
+
+    tasks = sorted(all_tasks())
+    with ThreadPoolExecutor(args.jobs) as pool:
+        runs = list(pool.map(lambda t: train_bc(f"metaworld/{t}", RULE_DECODER, args), tasks))
+    bc = {t: json.loads((run / "bc_eval.json").read_text())["success_rate"] for t, run in zip(tasks, runs)}
+    chosen = split(bc)
+    Path(args.task_set).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.task_set).write_text(json.dumps(chosen, indent=1) + "\n")
+    return chosen
+
+
+def resolve_task_spec(spec: str, task_set: Path) -> list[str]:
+    """`dev` or `report` (a half of the selected task set), else a Meta-World task spec."""
+    if spec in ("dev", "report"):
+        if not task_set.is_file():
+            raise SystemExit(f"--tasks {spec}: expected the task set {task_set} (run --select first), "
+                             f"got no such file")
+        return json.loads(task_set.read_text())[spec]
+    from action_decoder.envs import resolve_tasks
+
+    return resolve_tasks(spec)
 
 
 def _run(cmd: list[str], log: Path) -> None:
@@ -50,11 +104,15 @@ def _sde_steps(args) -> int:
     return int(extra[extra.index("--sde-steps") + 1]) if "--sde-steps" in extra else FinetuneConfig.sde_steps
 
 
-def run_one(task: str, decoder: str, args) -> None:
-    run = Path(args.runs) / f"{task.split('/')[-1]}_{decoder}{'' if args.algo == 'ppo' else '_' + args.algo}"
+def run_dir(task: str, decoder: str, args) -> Path:
+    return Path(args.runs) / f"{task.split('/')[-1]}_{decoder}{'' if args.algo == 'ppo' else '_' + args.algo}"
+
+
+def train_bc(task: str, decoder: str, args) -> Path:
+    """The BC policy of (task, decoder) and its 50-episode ODE evaluation; returns the run directory."""
+    run = run_dir(task, decoder, args)
     run.mkdir(parents=True, exist_ok=True)
-    log = run / "log.txt"
-    bc, ft = run / "bc", run / "ft"
+    log, bc = run / "log.txt", run / "bc"
     if not (bc / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (bc / "checkpoints" / "last").is_file() else []
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos), "--steps",
@@ -62,6 +120,14 @@ def run_one(task: str, decoder: str, args) -> None:
               "--n-action-steps", "8",    # the recipe the RL table was measured with: 8 actions per decision
               "--eval-episodes", "0", "--no-progress", *resume], log)
     _eval(bc / "final", run / "bc_eval.json", "ode", args, log)
+    return run
+
+
+def run_one(task: str, decoder: str, seed: int, args) -> None:
+    run = train_bc(task, decoder, args)
+    log, bc = run / "log.txt", run / "bc"
+    suffix = "" if seed == 0 else f"_s{seed}"
+    ft = run / f"ft{suffix}"
     # The fine-tuned policy samples with K = --sde-steps; MeanFlow's BC default is K = 1, so the
     # BC policy is also measured at that K, and the gain is taken over the better of the two.
     k = _sde_steps(args)
@@ -71,61 +137,125 @@ def run_one(task: str, decoder: str, args) -> None:
         resume = ["--resume"] if (ft / "checkpoints" / "last").is_file() else []
         _run([*CLI, "finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(ft), "--algo", args.algo,
               "--env-steps", "10000000", "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
-              *args.finetune_args, *resume], log)
-    _eval(ft / "final", run / "ft_eval_sde.json", "sde", args, log)
-    _eval(ft / "final", run / "ft_eval_ode.json", "ode", args, log)
+              "--seed", str(seed), *args.finetune_args, *resume], log)
+    _eval(ft / "final", run / f"ft_eval_sde{suffix}.json", "sde", args, log)
+    _eval(ft / "final", run / f"ft_eval_ode{suffix}.json", "ode", args, log)
+
+
+def _gain(r: dict) -> float:
+    """Points gained: the better fine-tuned sampler over the better BC budget."""
+    return 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
 
 
 def collect(runs: Path) -> list[dict]:
-    """One row per finished run under `runs`: success before/after and the evaluation curve."""
+    """One row per finished fine-tuning under `runs` (each seed its own): success before/after,
+    training success at the end of the run, and the evaluation curve."""
     rows = []
-    for run in sorted(p for p in runs.iterdir() if (p / "ft_eval_ode.json").is_file()):
-        bc = json.loads((run / "bc_eval.json").read_text())
-        ft_k = json.loads((run / "ft_eval_ode.json").read_text())["steps"]
-        at_k = run / f"bc_eval_k{ft_k}.json"
-        bc_at_k = json.loads(at_k.read_text()) if at_k.is_file() else bc
-        sde = json.loads((run / "ft_eval_sde.json").read_text())
-        ode = json.loads((run / "ft_eval_ode.json").read_text())
-        log = json.loads((run / "ft" / "finetune_log.json").read_text())
-        last = log["history"][-1]
-        cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in log["history"]}
-        rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
-                     "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"], "ft_k": ft_k,
-                     "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
-                     "cpu_min": round(last.get("cpu_s", last["wall_s"]) / 60, 2), "env_steps": last["env_steps"],
-                     "measured": time.strftime("%Y-%m-%d", time.gmtime((run / "ft_eval_ode.json").stat().st_mtime)),
-                     # (CPU minutes, 20-episode SDE success, ODE success) at each evaluation during the run
-                     "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e["success_sde"], e["success_ode"]]
-                               for e in log["evals"]]})
+    for run in sorted(p for p in runs.iterdir() if (p / "bc_eval.json").is_file()):
+        for ft in sorted(run.glob("ft*")):
+            suffix = ft.name[2:]
+            if not (run / f"ft_eval_ode{suffix}.json").is_file():
+                continue
+            bc = json.loads((run / "bc_eval.json").read_text())
+            ft_k = json.loads((run / f"ft_eval_ode{suffix}.json").read_text())["steps"]
+            at_k = run / f"bc_eval_k{ft_k}.json"
+            bc_at_k = json.loads(at_k.read_text()) if at_k.is_file() else bc
+            sde = json.loads((run / f"ft_eval_sde{suffix}.json").read_text())
+            ode = json.loads((run / f"ft_eval_ode{suffix}.json").read_text())
+            log = json.loads((ft / "finetune_log.json").read_text())
+            hist, last = log["history"], log["history"][-1]
+            cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in hist}
+            tail = hist[-10:]
+            rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
+                         "sigma": log["config"].get("sigma"),
+                         "seed": log["config"].get("seed", 0), "half": half(log["task"]),
+                         "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"],
+                         "ft_k": ft_k, "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
+                         # training episodes (SDE, fresh layouts, `--max-episode-steps`) of the last 10 iterations
+                         "train_success_last10": round(sum(h["success"] for h in tail) / len(tail), 3),
+                         "kl_bc_last": round(last["kl_bc"], 2) if "kl_bc" in last else None,
+                         "cpu_min": round(last.get("cpu_s", last["wall_s"]) / 60, 2), "env_steps": last["env_steps"],
+                         "measured": time.strftime("%Y-%m-%d", time.gmtime((run / f"ft_eval_ode{suffix}.json").stat().st_mtime)),
+                         # (CPU minutes, 20-episode SDE success, ODE success) at each evaluation during the run
+                         "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e["success_sde"], e["success_ode"]]
+                                   for e in log["evals"]]})
     return rows
+
+
+def _key(r: dict) -> tuple:
+    return r["task"], r["decoder"], r["algo"], r.get("seed", 0)
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
     """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
-    (task, decoder, algo); written back so that tables and plots can be rebuilt from every run kept."""
-    key = itemgetter("task", "decoder", "algo")
-    kept = {key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
-    kept.update({key(r): r for r in rows})
-    merged = sorted(kept.values(), key=key)
+    (task, decoder, algo, seed); written back so that tables and plots can be rebuilt from every run kept."""
+    kept = {_key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
+    kept.update({_key(r): r for r in rows})
+    merged = sorted(kept.values(), key=lambda r: (r.get("half", half(r["task"])), *_key(r)))
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text("[\n" + ",\n".join(json.dumps(r) for r in merged) + "\n]\n")  # a row per line: diffs by row
     return merged
 
 
-def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
-    lines = ["| task | decoder | algo | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
-             "fine-tuned (ODE) | gain (best over best) | CPU min | env steps | measured |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+def _num(r: dict, key: str, scale: float, fmt: str) -> str:
+    """A table cell; "–" for rows recorded before the column existed."""
+    return "–" if r.get(key) is None else format(scale * r[key], fmt)
+
+
+def summary(rows: list[dict]) -> list[str]:
+    """Mean gain per (half, decoder, algo) over seed-0 rows, and the seed-to-seed spread where a
+    (task, decoder) ran with several fine-tuning seeds."""
+    lines, groups, seeds = [], {}, {}
     for r in rows:
-        gain = 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
-        lines.append(f"| {r['task']} | {r['decoder']} | {r['algo']} | {100 * r['bc']:.0f} (K={r['bc_steps']}) | "
-                     f"{100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | {100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | "
-                     f"{gain:+.0f} | {r['cpu_min']:.0f} | {r['env_steps']} | {r['measured']} |")
+        if r.get("seed", 0) == 0:
+            groups.setdefault((r.get("half", half(r["task"])), r["decoder"], r["algo"]), []).append(_gain(r))
+        seeds.setdefault((r["task"], r["decoder"], r["algo"]), []).append(_gain(r))
+    for (h, dec, algo), gains in sorted(groups.items()):
+        lines.append(f"- {h} half, {dec} ({algo}): mean gain {sum(gains) / len(gains):+.1f} points over "
+                     f"{len(gains)} task(s) (seed 0)")
+    spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
+    for (task, dec, algo), gains in spread:
+        lines.append(f"- noise: {task} {dec} ({algo}) gains over fine-tuning seeds: "
+                     + ", ".join(f"{g:+.0f}" for g in gains) + f" (range {max(gains) - min(gains):.0f} points)")
+    return lines
+
+
+def task_set_text(task_set: dict, args) -> str:
+    """The rule, the split and every task's BC success, from the task set `select` wrote."""
+    lo, hi = (round(100 * b) for b in task_set["band"])
+    bc = task_set["bc"]
+    below = sorted(t for t, r in bc.items() if r < task_set["band"][0])
+    above = sorted(t for t, r in bc.items() if r > task_set["band"][1])
+    rows = [f"| {t} | {100 * bc[t]:.0f} | {h} |" for h in ("dev", "report") for t in task_set[h]]
+    return (f"Task set (`{args.task_set}`): every Meta-World task whose 3-demo flow-matching BC policy (K = 10) "
+            f"succeeds in {lo}–{hi} % of {args.episodes} evaluation episodes, seed 0 — {len(rows)} of {len(bc)} tasks. "
+            f"Development half: the tasks the defaults were developed on ({', '.join(TUNED_ON)}) and the in-band "
+            "tasks whose name's sha256 is even; report half: the others, run once with the final defaults.\n\n"
+            "| task | BC success, % | half |\n|---|---:|---|\n" + "\n".join(rows) + "\n\n"
+            f"Below the band ({len(below)}): " + (", ".join(f"{t} {100 * bc[t]:.0f}" for t in below) or "none") + ". "
+            f"Above it ({len(above)}): " + (", ".join(f"{t} {100 * bc[t]:.0f}" for t in above) or "none") + ".\n\n")
+
+
+def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict | None = None) -> str:
+    lines = ["| half | task | decoder | algo, σ scale | seed | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
+             "fine-tuned (ODE) | gain (best over best) | training success, last 10 it. | KL to BC | CPU min | "
+             "env steps | measured |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        algo = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
+        lines.append(f"| {r.get('half', half(r['task']))} | {r['task']} | {r['decoder']} | {algo} | {r.get('seed', 0)} | "
+                     f"{100 * r['bc']:.0f} (K={r['bc_steps']}) | {100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | "
+                     f"{100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
+                     f"{_num(r, 'train_success_last10', 100, '.0f')} | {_num(r, 'kl_bc_last', 1, '.1f')} | "
+                     f"{r['cpu_min']:.0f} | {r['env_steps']} | {r['measured']} |")
+    chosen = task_set_text(task_set, args) if task_set else ""
     text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
-            f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps).\n\n"
-            + "\n".join(lines) + "\n\n"
-            f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
-            "learning curves of the rows that kept one (rows recorded before the curves were stored have none).\n")
+            f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps). "
+            "Training success: the fine-tuning's own episodes (SDE, fresh layouts, 200-step cap) over its last "
+            "10 iterations.\n\n" + chosen
+            + "\n".join(lines) + "\n\n" + "\n".join(summary(rows)) + ("\n\n" if rows else "")
+            + f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
+            "learning curves.\n")
     table.parent.mkdir(parents=True, exist_ok=True)
     notes = table.read_text().partition(NOTES)[2] if table.is_file() else ""
     table.write_text(text + f"\n{NOTES}" + (notes or "\n"))   # the hand-written part below the table stays
@@ -136,14 +266,19 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, len(curves), figsize=(3.6 * len(curves), 3.2), squeeze=False)
-        for ax, r in zip(axes[0], curves):
+        cols = min(len(curves), 4)
+        n_rows = -(-len(curves) // cols)
+        fig, axes = plt.subplots(n_rows, cols, figsize=(3.6 * cols, 3.2 * n_rows), squeeze=False)
+        for ax, r in zip(axes.flat, curves):
             cpu, sde, ode = zip(*r["curve"])
             ax.plot(cpu, sde, marker="o", label="eval sde (20 ep.)")
             ax.plot(cpu, ode, marker="o", label="eval ode (20 ep.)")
             ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
-            ax.set(title=f"{r['task']} {r['decoder']}", xlabel="CPU minutes", ylabel="success", ylim=(-0.02, 1.02))
+            ax.set(title=f"{r['task']} {r['decoder']} s{r.get('seed', 0)}", xlabel="CPU minutes", ylabel="success",
+                   ylim=(-0.02, 1.02))
             ax.grid(alpha=0.3)
+        for ax in list(axes.flat)[len(curves):]:
+            ax.axis("off")
         axes[0][0].legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(plot, dpi=110)
@@ -153,9 +288,12 @@ def write_report(rows: list[dict], table: Path, plot: Path, args) -> str:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--tasks", default="metaworld/reach,metaworld/reach-wall,metaworld/door-lock",
-                   help="tasks whose 3-demo BC policy succeeds in 15-60 %% of episodes (docs/benchmarks/rl_finetune.md)")
+    p.add_argument("--select", action="store_true",
+                   help="BC-train and evaluate every task, write the task set (--task-set) and stop")
+    p.add_argument("--tasks", default="report",
+                   help="'report' or 'dev' (a half of the task set), or Meta-World task names")
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
+    p.add_argument("--seeds", nargs="+", type=int, default=[0], help="fine-tuning seeds (the BC policy is shared)")
     p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
     p.add_argument("--demos", type=int, default=3)
     p.add_argument("--bc-steps", type=int, default=2000)
@@ -163,6 +301,7 @@ def main(argv=None) -> None:
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
     p.add_argument("--runs", default="runs/rl_finetune")
+    p.add_argument("--task-set", default="docs/benchmarks/rl_tasks.json", help="written by --select")
     p.add_argument("--table", default="docs/benchmarks/rl_finetune.md")
     p.add_argument("--plot", default="docs/benchmarks/rl_finetune.png")
     p.add_argument("--results", default="docs/benchmarks/rl_finetune.json",
@@ -171,13 +310,20 @@ def main(argv=None) -> None:
     p.add_argument("finetune_args", nargs=argparse.REMAINDER, help="extra `finetune` options after --")
     args = p.parse_args(argv)
     args.finetune_args = [a for a in args.finetune_args if a != "--"]
-    from action_decoder.envs import resolve_tasks
-
-    grid = [] if args.report_only else [(f"metaworld/{t}", d) for t in resolve_tasks(args.tasks) for d in args.decoders]
+    task_set = Path(args.task_set)
+    if args.select:
+        chosen = select(args)
+        print(f"development half: {chosen['dev']}\nreport half: {chosen['report']}")
+        return
+    grid = [] if args.report_only else [(f"metaworld/{t}", d, s) for t in resolve_task_spec(args.tasks, task_set)
+                                        for d in args.decoders for s in args.seeds]
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()
-    print(write_report(merge(Path(args.results), collect(Path(args.runs))), Path(args.table), Path(args.plot), args))
+    rows = merge(Path(args.results), collect(Path(args.runs))) if Path(args.runs).is_dir() else \
+        merge(Path(args.results), [])
+    chosen = json.loads(task_set.read_text()) if task_set.is_file() else None
+    print(write_report(rows, Path(args.table), Path(args.plot), args, chosen))
 
 
 if __name__ == "__main__":

@@ -211,14 +211,14 @@ def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tm
     ev("bc_eval_k10.json", 0.40, 10)     # the K the fine-tuned policy samples with
     ev("ft_eval_sde.json", 0.70, 10)
     ev("ft_eval_ode.json", 0.60, 10)
-    hist = [{"iteration": 1, "env_steps": 6400, "wall_s": 60.0, "cpu_s": 55.0}]
+    hist = [{"iteration": 1, "env_steps": 6400, "wall_s": 60.0, "cpu_s": 55.0, "success": 0.75, "kl_bc": 2.5}]
     (run / "ft" / "finetune_log.json").write_text(json.dumps(
-        {"task": "reach-v3", "config": {"algo": "ppo"}, "history": hist,
+        {"task": "reach-v3", "config": {"algo": "ppo", "sigma": 0.25}, "history": hist,
          "evals": [{"iteration": 1, "success_sde": 0.5, "success_ode": 0.5}]}))
     rows = rl_finetune.collect(tmp_path / "runs")
     args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json")
     text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
-    assert "| 30 (K=1) | 40 (K=10) | 70 | 60 | +30 |" in text      # 70 − max(30, 40)
+    assert "| mean_flow | ppo, a = 0.25 | 0 | 30 (K=1) | 40 (K=10) | 70 | 60 | +30 | 75 | 2.5 |" in text      # 70 − max(30, 40); training success
     assert rows[0]["curve"] == [[0.92, 0.5, 0.5]]                   # 55 CPU-s
     md = tmp_path / "t.md"
     md.write_text(md.read_text() + "What the table says.\n")
@@ -242,8 +242,84 @@ def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path)
     assert json.loads(results.read_text()) == merged
     text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
                                     argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
-    assert "| push-v3 | flow_matching | ppo | 20 (K=10) | 20 (K=10) | 30 | 10 | +10 | 45 | 1000 | 2026-11-23 |" in text
+    assert "| dev | push-v3 | flow_matching | ppo | 0 | 20 (K=10) | 20 (K=10) | 30 | 10 | +10 | – | – | 45 | 1000 | " \
+        "2026-11-23 |" in text                                         # a row from before the training-success column
+    assert "- dev half, flow_matching (ppo): mean gain +40.0 points over 2 task(s) (seed 0)" in text
     assert not (tmp_path / "t.png").exists()                            # no curves kept: no plot
+
+
+def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    bc = {"reach-v3": 0.30, "push-back-v3": 0.40, "handle-pull-v3": 0.15, "lever-pull-v3": 0.65,
+          "coffee-push-v3": 0.32, "door-open-v3": 0.90, "pick-place-v3": 0.14, "peg-unplug-side-v3": 0.66}
+    chosen = rl_finetune.split(bc)
+    assert chosen["bc"] == dict(sorted(bc.items())) and chosen["band"] == [0.15, 0.65]
+    # in band, edges included; reach is a task the defaults were tuned on, so dev whatever its hash
+    assert sorted(chosen["dev"] + chosen["report"]) == ["coffee-push-v3", "handle-pull-v3", "lever-pull-v3",
+                                                        "push-back-v3", "reach-v3"]
+    assert "reach-v3" in chosen["dev"] and rl_finetune.half("reach-v3") == "dev"
+    assert chosen["report"] == ["handle-pull-v3", "lever-pull-v3", "push-back-v3"]   # sha256 parity, fixed
+    assert chosen["dev"] == ["coffee-push-v3", "reach-v3"]
+    path = tmp_path / "rl_tasks.json"
+    path.write_text(json.dumps(chosen))
+    assert rl_finetune.resolve_task_spec("report", path) == chosen["report"]
+    assert rl_finetune.resolve_task_spec("metaworld/reach", path) == ["reach-v3"]
+    with pytest.raises(SystemExit, match=r"--tasks dev: expected the task set .*missing.json \(run --select first\)"):
+        rl_finetune.resolve_task_spec("dev", tmp_path / "missing.json")
+    text = rl_finetune.task_set_text(chosen, argparse.Namespace(task_set="rl_tasks.json", episodes=50))
+    assert "15–65 % of 50 evaluation episodes, seed 0 — 5 of 8 tasks" in text
+    assert "| reach-v3 | 30 | dev |" in text and "| lever-pull-v3 | 65 | report |" in text
+    assert "Below the band (1): pick-place-v3 14. Above it (2): door-open-v3 90, peg-unplug-side-v3 66." in text
+
+
+def test_rl_select_writes_the_task_set_from_every_tasks_bc_run(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+    import action_decoder.envs.metaworld_tasks as mw
+
+    rates = {"reach-v3": 0.3, "door-open-v3": 0.9, "lever-pull-v3": 0.2}
+    monkeypatch.setattr(mw, "all_tasks", lambda: list(rates))
+
+    def fake_bc(task, decoder, args):
+        assert decoder == "flow_matching" and task.startswith("metaworld/")
+        run = tmp_path / "runs" / task.split("/")[1]
+        run.mkdir(parents=True)
+        (run / "bc_eval.json").write_text(json.dumps({"success_rate": rates[task.split("/")[1]]}))
+        return run
+
+    monkeypatch.setattr(rl_finetune, "train_bc", fake_bc)
+    out = tmp_path / "docs" / "rl_tasks.json"
+    rl_finetune.main(["--select", "--task-set", str(out), "--runs", str(tmp_path / "runs")])
+    chosen = json.loads(out.read_text())
+    assert chosen["bc"] == dict(sorted(rates.items()))
+    assert chosen["dev"] == ["reach-v3"] and chosen["report"] == ["lever-pull-v3"]
+
+
+def test_rl_rows_keep_each_fine_tuning_seed_and_report_their_spread(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    run = tmp_path / "runs" / "reach-v3_flow_matching"
+    for suffix, seed, rate in (("", 0, 0.5), ("_s1", 1, 0.3)):
+        (run / f"ft{suffix}").mkdir(parents=True)
+        for name, r in (("ft_eval_sde", rate), ("ft_eval_ode", rate - 0.1)):
+            (run / f"{name}{suffix}.json").write_text(json.dumps({"success_rate": r, "steps": 10}))
+        hist = [{"iteration": i, "env_steps": 800 * i, "wall_s": 1.0, "cpu_s": 60.0 * i, "success": i / 20, "kl_bc": 1.0}
+                for i in range(1, 13)]
+        (run / f"ft{suffix}" / "finetune_log.json").write_text(json.dumps(
+            {"task": "reach-v3", "config": {"algo": "ppo", "seed": seed}, "history": hist, "evals": []}))
+    (run / "bc_eval.json").write_text(json.dumps({"decoder_type": "flow_matching", "success_rate": 0.2, "steps": 10}))
+    (run / "ft_s2").mkdir()                                  # a fine-tuning still running: no row yet
+    rows = rl_finetune.collect(tmp_path / "runs")
+    assert [(r["seed"], r["ft_sde"], r["half"]) for r in rows] == [(0, 0.5, "dev"), (1, 0.3, "dev")]
+    assert rows[0]["train_success_last10"] == round(sum(i / 20 for i in range(3, 13)) / 10, 3)   # the last 10
+    merged = rl_finetune.merge(tmp_path / "r.json", rows)
+    assert len(merged) == 2                                  # seeds are kept apart
+    lines = rl_finetune.summary(merged)
+    assert lines == ["- dev half, flow_matching (ppo): mean gain +30.0 points over 1 task(s) (seed 0)",
+                     "- noise: reach-v3 flow_matching (ppo) gains over fine-tuning seeds: +30, +10 (range 20 points)"]
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
