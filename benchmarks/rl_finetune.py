@@ -152,7 +152,7 @@ def collect(runs: Path) -> list[dict]:
     training success at the end of the run, and the evaluation curve."""
     rows = []
     for run in sorted(p for p in runs.iterdir() if (p / "bc_eval.json").is_file()):
-        for ft in sorted(run.glob("ft*")):
+        for ft in sorted(d for d in run.glob("ft*") if d.is_dir()):     # ft, ft_s1, …
             suffix = ft.name[2:]
             if not (run / f"ft_eval_ode{suffix}.json").is_file():
                 continue
