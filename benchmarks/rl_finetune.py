@@ -28,7 +28,6 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from operator import itemgetter
 from pathlib import Path
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
@@ -191,7 +190,7 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
     (task, decoder, algo, seed); written back so that tables and plots can be rebuilt from every run kept."""
     kept = {_key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({_key(r): r for r in rows})
-    merged = sorted(kept.values(), key=lambda r: (r.get("half", half(r["task"])), *_key(r)))
+    merged = sorted(kept.values(), key=lambda r: (half(r["task"]), *_key(r)))
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text("[\n" + ",\n".join(json.dumps(r) for r in merged) + "\n]\n")  # a row per line: diffs by row
     return merged
@@ -208,7 +207,7 @@ def summary(rows: list[dict]) -> list[str]:
     lines, groups, seeds = [], {}, {}
     for r in rows:
         if r.get("seed", 0) == 0:
-            groups.setdefault((r.get("half", half(r["task"])), r["decoder"], r["algo"]), []).append(_gain(r))
+            groups.setdefault((half(r["task"]), r["decoder"], r["algo"]), []).append(_gain(r))
         seeds.setdefault((r["task"], r["decoder"], r["algo"]), []).append(_gain(r))
     for (h, dec, algo), gains in sorted(groups.items()):
         lines.append(f"- {h} half, {dec} ({algo}): mean gain {sum(gains) / len(gains):+.1f} points over "
@@ -243,7 +242,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         algo = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
-        lines.append(f"| {r.get('half', half(r['task']))} | {r['task']} | {r['decoder']} | {algo} | {r.get('seed', 0)} | "
+        lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {algo} | {r.get('seed', 0)} | "
                      f"{100 * r['bc']:.0f} (K={r['bc_steps']}) | {100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | "
                      f"{100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
                      f"{_num(r, 'train_success_last10', 100, '.0f')} | {_num(r, 'kl_bc_last', 1, '.1f')} | "
