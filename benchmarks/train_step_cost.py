@@ -3,6 +3,7 @@
     python -m benchmarks.train_step_cost                 # timing table (paired rounds), both sizes
     python -m benchmarks.train_step_cost --quality       # + the synthetic two-route task, jvp vs fd
     python -m benchmarks.train_step_cost --precision-only [--checkpoint DIR]   # du/dt error vs step
+    python -m benchmarks.train_step_cost --device cuda --autocast none,bf16 --inner 20 --out docs/benchmarks/meanflow_cost_gpu.json
 
 Timing: one AdamW step (zero_grad, loss, backward, step) of the CLI's recipe: batch 128, MeanFlow
 with r ≠ t on 0.25 of the rows, uniform times, p = 0.5, the clean-chunk head; flow matching with
@@ -11,12 +12,16 @@ and the two timers of a pair in alternating order (`timing.rounds`); the ratio i
 then the median and the quartiles over rounds are reported. Variants:
 
 - "jvp": `meanflow_dudt="jvp"` (torch.func.jvp on the r ≠ t rows, a plain call on the others).
-- "finite_difference": `meanflow_dudt="finite_difference"` (u in one call over B rows, du/dt by
-  a central difference in one no-grad call over 2n rows).
-- "fd, one call (B + 2n rows)": the same central difference with its 2n rows in the grad call
-  (this module's own loss, built from the library's pieces), to compare with the second call.
+- "finite_difference": `meanflow_dudt="finite_difference"` through `compute_loss`, the batching
+  `meanflow_loss` chooses for the device (`fd_one_call=None`: one call on CUDA, two elsewhere).
+- "fd, one call (B + 2n rows)" / "fd, two calls (B, then 2n rows)": the same central difference
+  with its 2n shifted rows in u's grad call, or in a second, no-grad call (`fd_one_call=True` /
+  `False`). Under autocast only two calls exist (the difference runs in float32).
 - "forward difference (n rows)": (u(z + h·v, t + h, r) − u)/h with h = 1e-5 in a no-grad call
   over n rows (this module's own loss); it reuses u but is ~10× less accurate.
+
+`--device cuda --autocast none,bf16 --inner 20` times the same steps on a GPU, each timer over
+20 back-to-back steps between CUDA events, in float32 and under bf16 autocast.
 """
 
 from __future__ import annotations
@@ -59,55 +64,70 @@ def _policy(decoder: str, size: tuple, **kw) -> ActionDecoderPolicy:
     return ActionDecoderPolicy(cfg).train()
 
 
-def _local_loss(policy: ActionDecoderPolicy, batch: dict, how: str) -> torch.Tensor:
-    """The library's MeanFlow loss with du/dt computed `how` ("one_call" or "forward")."""
+def _fd_loss(policy: ActionDecoderPolicy, batch: dict, one_call: bool) -> torch.Tensor:
+    """The library's MeanFlow loss (`compute_loss`'s arguments) with du/dt by central difference,
+    its 2n shifted rows in u's call (`one_call`) or in a second, no-grad call."""
+    cfg = policy.config
+    cond = policy._prepare(batch)
+    a = policy.normalizers["actions"].normalize(batch["actions"].float())            # [B, H, D]
+    return losses.meanflow_loss(policy._flow_net, a, None, cond, ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t,
+                                time_mean=cfg.meanflow_time_mean, time_std=cfg.meanflow_time_std,
+                                adaptive_p=cfg.meanflow_adaptive_p, adaptive_c=cfg.meanflow_adaptive_c,
+                                time_dist=cfg.meanflow_time_dist, dudt="finite_difference",
+                                fd_one_call=one_call)
+
+
+def _forward_difference_loss(policy: ActionDecoderPolicy, batch: dict) -> torch.Tensor:
+    """The library's MeanFlow loss with du/dt by a forward difference (u reused, n extra rows)."""
     cfg = policy.config
     cond = policy._prepare(batch)
     a = policy.normalizers["actions"].normalize(batch["actions"].float())            # [B, H, D]
     B = a.shape[0]
     t, r, n = losses.sample_meanflow_times(B, cfg.meanflow_ratio_r_neq_t, cfg.meanflow_time_mean,
-                                           cfg.meanflow_time_std, dist=cfg.meanflow_time_dist)
-    e = torch.randn(a.shape)
+                                           cfg.meanflow_time_std, device=a.device, dist=cfg.meanflow_time_dist)
+    e = torch.randn(a.shape, device=a.device)
     z, v = interpolate(e, a, t), a - e
     net, head = policy._flow_net, slice(0, n)
-    if how == "one_call":
-        h = losses.fd_step(z.dtype)
-        rows = lambda x, y, w: torch.cat([x, y, w])                                        # noqa: E731
-        c3 = {k: losses._map_tensors(c, lambda x: rows(x, x[head], x[head])) for k, c in cond.items()}
-        out = net(rows(z, z[head] + h * v[head], z[head] - h * v[head]), rows(t, t[head] + h, t[head] - h),
-                  rows(r, r[head], r[head]), **c3)                                          # [B + 2n, H, D]
-        u, dudt = out[:B], ((out[B:B + n] - out[B + n:]) / (2 * h)).detach()
-    else:
-        u = net(z, t, r, **cond)
-        with torch.no_grad():
-            dudt = (net(z[head] + FORWARD_STEP * v[head], t[head] + FORWARD_STEP, r[head],
-                        **losses.slice_cond(cond, head)) - u[head]) / FORWARD_STEP
+    u = net(z, t, r, **cond)
+    with torch.no_grad():
+        dudt = (net(z[head] + FORWARD_STEP * v[head], t[head] + FORWARD_STEP, r[head],
+                    **losses.slice_cond(cond, head)) - u[head]) / FORWARD_STEP
     target = torch.cat([v[head] - (t[head] - r[head]).reshape(-1, 1, 1) * dudt, v[n:]])
     error = (u - target).square().mean((1, 2))
     return ((error.detach() + cfg.meanflow_adaptive_c).pow(-cfg.meanflow_adaptive_p) * error).mean()
 
 
-def _step(policy: ActionDecoderPolicy, batch: dict, loss: Callable) -> Callable[[], None]:
+def _step(policy: ActionDecoderPolicy, batch: dict, loss: Callable, autocast: Optional[torch.dtype] = None
+          ) -> Callable[[], None]:
+    """One AdamW step of `policy` on `batch` (on the batch's device), the loss under autocast to
+    `autocast` when given (weights and optimizer stay float32: mixed-precision training)."""
+    device = batch["actions"].device
+    policy.to(device)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
 
     def step():
         opt.zero_grad(set_to_none=True)
-        loss(policy, batch).backward()
+        with torch.autocast(device.type, dtype=autocast or torch.float32, enabled=autocast is not None):
+            value = loss(policy, batch)
+        value.backward()
         opt.step()
     step()                                                                     # the optimizer state
     return step
 
 
-def variants(size: tuple, batch: dict) -> Dict[str, Callable[[], None]]:
+def variants(size: tuple, batch: dict, autocast: Optional[torch.dtype] = None) -> Dict[str, Callable[[], None]]:
     lib = lambda p, b: p.compute_loss(b).loss                                  # noqa: E731
+    step = functools.partial(_step, autocast=autocast)
+    one_call = {} if autocast else {"fd, one call (B + 2n rows)": step(
+        _policy("mean_flow", size), batch, functools.partial(_fd_loss, one_call=True))}
     return {
-        "FM": _step(_policy("flow_matching", size), batch, lib),
-        "jvp": _step(_policy("mean_flow", size, meanflow_dudt="jvp"), batch, lib),
-        "finite_difference": _step(_policy("mean_flow", size, meanflow_dudt="finite_difference"), batch, lib),
-        "fd, one call (B + 2n rows)": _step(_policy("mean_flow", size), batch,
-                                            functools.partial(_local_loss, how="one_call")),
-        "forward difference (n rows)": _step(_policy("mean_flow", size), batch,
-                                             functools.partial(_local_loss, how="forward")),
+        "FM": step(_policy("flow_matching", size), batch, lib),
+        "jvp": step(_policy("mean_flow", size, meanflow_dudt="jvp"), batch, lib),
+        "finite_difference": step(_policy("mean_flow", size, meanflow_dudt="finite_difference"), batch, lib),
+        **one_call,
+        "fd, two calls (B, then 2n rows)": step(_policy("mean_flow", size), batch,
+                                                functools.partial(_fd_loss, one_call=False)),
+        "forward difference (n rows)": step(_policy("mean_flow", size), batch, _forward_difference_loss),
     }
 
 
@@ -116,13 +136,17 @@ def _quantile(xs: List[float], q: float) -> float:
     return xs[min(len(xs) - 1, int(round(q * (len(xs) - 1))))]
 
 
-def time_size(name: str, size: tuple, reps: int, warmup: int) -> dict:
+def time_size(name: str, size: tuple, reps: int, warmup: int, device: str = "cpu",
+              autocast: Optional[torch.dtype] = None, inner: int = 1) -> dict:
+    """Paired rounds of each MeanFlow variant's step against the FM step; on CUDA each timer
+    covers `inner` back-to-back steps between two events (a step of these networks is a few ms)."""
     g = torch.Generator().manual_seed(3)
-    batch = {"state": torch.randn(BATCH, 39, generator=g), "actions": torch.randn(BATCH, 16, 4, generator=g)}
-    steps = variants(size, batch)
-    clock = Clock(torch.device("cpu"))
+    batch = {"state": torch.randn(BATCH, 39, generator=g).to(device),
+             "actions": torch.randn(BATCH, 16, 4, generator=g).to(device)}
+    steps = variants(size, batch, autocast)
+    clock = Clock(torch.device(device))
     fm = steps["FM"]
-    timers = {k: [lambda s=s: clock(s), lambda: clock(fm)] for k, s in steps.items() if k != "FM"}
+    timers = {k: [lambda s=s: clock(s, inner), lambda: clock(fm, inner)] for k, s in steps.items() if k != "FM"}
     raw = rounds(clock, timers, reps, warmup)
     fm_ms = [s[1] * 1e3 for k in raw for s in raw[k]]
     rows = [{"variant": "FM", "step_ms": _quantile(fm_ms, 0.5), "vs_fm": 1.0, "q25": 1.0, "q75": 1.0}]
@@ -131,7 +155,8 @@ def time_size(name: str, size: tuple, reps: int, warmup: int) -> dict:
         rows.append({"variant": k, "step_ms": _quantile([s[0] * 1e3 for s in samples], 0.5),
                      "vs_fm": _quantile(ratio, 0.5), "q25": _quantile(ratio, 0.25), "q75": _quantile(ratio, 0.75),
                      "min": min(ratio), "max": max(ratio)})
-    return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows}
+    return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows, "device": device,
+            "autocast": str(autocast).replace("torch.", "") if autocast else "none"}
 
 
 def quality(seeds: List[int], steps: int, methods=("jvp", "finite_difference"), tiny: bool = False,
@@ -261,14 +286,16 @@ def precision_table(prec: List[dict]) -> str:
 
 
 def table(results: List[dict]) -> str:
-    lines = ["| network (batch 128) | variant | step ms (median) | ÷ FM step (median) | quartiles | min–max |",
-             "|---|---|---|---|---|---|"]
+    gpu = any(res.get("device", "cpu") != "cpu" or res.get("autocast", "none") != "none" for res in results)
+    lines = ["| network (batch 128) | " + ("autocast | " if gpu else "") + "variant | step ms (median) | "
+             "÷ FM step (median) | quartiles | min–max |", "|---" * (7 if gpu else 6) + "|"]
     for res in results:
         for row in res["rows"]:
             spread = "" if row["variant"] == "FM" else f"{row['q25']:.2f}–{row['q75']:.2f}"
             full = "" if row["variant"] == "FM" else f"{row['min']:.2f}–{row['max']:.2f}"
-            lines.append(f"| {res['size']} | {row['variant']} | {row['step_ms']:.0f} | {row['vs_fm']:.2f} | "
-                         f"{spread} | {full} |")
+            ms = f"{row['step_ms']:.2f}" if gpu else f"{row['step_ms']:.0f}"
+            lines.append(f"| {res['size']} | " + (f"{res['autocast']} | " if gpu else "") + f"{row['variant']} | {ms} | "
+                         f"{row['vs_fm']:.2f} | {spread} | {full} |")
     return "\n".join(lines)
 
 
@@ -286,12 +313,23 @@ def main(argv=None) -> int:
     p.add_argument("--precision-only", action="store_true", help="only the du/dt error table (seconds)")
     p.add_argument("--checkpoint", action="append", default=[],
                    help="a MeanFlow checkpoint whose du/dt error to measure too (repeatable)")
+    p.add_argument("--device", default="cpu", help="where to time the steps (cpu or cuda)")
+    p.add_argument("--autocast", default="none", help="comma-separated: none, bf16 (timing under torch.autocast)")
+    p.add_argument("--inner", type=int, default=1, help="back-to-back steps per timer (CUDA: 10 or more)")
     p.add_argument("--out", default=None, help="JSON results (default: docs/benchmarks/meanflow_cost.json; "
                    "meanflow_cost_precision.json / _quality.json with --precision-only / --quality-only)")
     a = p.parse_args(argv)
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    casts = {"none": None, "bf16": torch.bfloat16}
+    for c in a.autocast.split(","):
+        if c not in casts:
+            p.error(f"--autocast: expected a comma-separated list of {list(casts)}, got {a.autocast!r}")
+    if a.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error(f"--device: expected a device this torch can use, got {a.device!r} (torch.cuda.is_available() is False)")
+    machine = (f"{torch.cuda.get_device_name(a.device)}, torch {torch.__version__}" if a.device.startswith("cuda")
+               else f"{os.cpu_count()}-core CPU, torch {torch.__version__}, {torch.get_num_threads()} thread(s)")
     results = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-               "machine": f"{os.cpu_count()}-core CPU, torch {torch.__version__}, {torch.get_num_threads()} thread(s)",
+               "machine": machine,
                "python": platform.python_version(), "command": "python -m benchmarks.train_step_cost "
                + " ".join(sys.argv[1:] if argv is None else argv), "timing": []}
     if not a.quality_only:
@@ -299,8 +337,9 @@ def main(argv=None) -> int:
         print(precision_table(results["precision"]), flush=True)
     if not (a.precision_only or a.quality_only):
         for name, size in SIZES.items():
-            print(f"[train_step_cost] {name}, batch {BATCH}, {a.reps} rounds", flush=True)
-            results["timing"].append(time_size(name, size, a.reps, a.warmup))
+            for c in a.autocast.split(","):
+                print(f"[train_step_cost] {name}, batch {BATCH}, {a.device}, autocast {c}, {a.reps} rounds", flush=True)
+                results["timing"].append(time_size(name, size, a.reps, a.warmup, a.device, casts[c], a.inner))
         print(table(results["timing"]), flush=True)
     if a.quality or a.quality_only:
         results["quality"] = quality([int(s) for s in a.seeds.split(",")], a.quality_steps, a.dudt.split(","),

@@ -432,3 +432,33 @@ def test_finite_difference_under_autocast_differences_in_float32():
     assert (noisy - plain).abs().max() > 10 * plain.abs().max() * 1e-3      # in bf16 it would be noise
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert torch.isfinite(meanflow_loss(u, torch.randn(8, 16, 4), dudt="finite_difference")).all()
+
+
+def test_finite_difference_in_one_call_gives_the_two_call_loss_and_gradients():
+    """`fd_one_call=True` puts the 2n shifted rows into u's call (one call over B + 2n rows, the
+    conditioning repeated for them): same loss and gradients as two calls, which CPU takes by
+    default; under autocast one call is refused (the difference must run in float32)."""
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Linear(4 + 2 + 3, 32), nn.Tanh(), nn.Linear(32, 4)).double()
+    calls = []
+
+    def u(x, t, r, state):                                    # state: [rows, 3], batch-aligned conditioning
+        calls.append(x.shape[0])
+        h = x.shape[1]
+        return net(torch.cat([x, t[:, None, None].expand(-1, h, 1), r[:, None, None].expand(-1, h, 1),
+                              state[:, None].expand(-1, h, 3)], -1))
+
+    a, state = torch.randn(32, 16, 4, dtype=torch.float64), torch.randn(32, 3, dtype=torch.float64)
+    params, out = list(net.parameters()), {}
+    for one_call in (True, False, None):
+        calls.clear()
+        loss = meanflow_loss(u, a, torch.Generator().manual_seed(5), {"state": state}, ratio_r_neq_t=0.25,
+                             dudt="finite_difference", fd_one_call=one_call)
+        out[one_call] = (loss, torch.autograd.grad(loss, params), list(calls))
+    assert out[True][2] == [32 + 2 * 8] and out[False][2] == [32, 2 * 8] and out[None][2] == out[False][2]
+    torch.testing.assert_close(out[True][0], out[False][0], rtol=1e-12, atol=0)
+    for x, y in zip(out[True][1], out[False][1]):
+        torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-14)
+    with torch.autocast("cpu", dtype=torch.bfloat16), pytest.raises(
+            ValueError, match="fd_one_call: expected False or None under autocast .*got True"):
+        meanflow_loss(u, a.float(), cond={"state": state.float()}, dudt="finite_difference", fd_one_call=True)

@@ -22,18 +22,22 @@ def cost(monkeypatch):
 
 
 def test_its_own_variants_compute_the_library_loss(cost):
-    """Same weights and noise: the one-call central difference gives the library's
+    """Same weights and noise: both batchings of the central difference give the library's
     finite-difference loss, the forward difference the JVP loss to its 1e-5 step's error."""
     size = (32, 1, 2, 1)
     g = torch.Generator().manual_seed(0)
     batch = {"state": torch.randn(16, 39, generator=g), "actions": torch.randn(16, 16, 4, generator=g)}
+    variants = {"fd": ("finite_difference", None), "jvp": ("jvp", None),
+                "one_call": (None, functools.partial(cost._fd_loss, one_call=True)),
+                "two_calls": (None, functools.partial(cost._fd_loss, one_call=False)),
+                "forward": (None, cost._forward_difference_loss)}
     losses = {}
-    for name, dudt, how in [("fd", "finite_difference", None), ("jvp", "jvp", None),
-                            ("one_call", None, "one_call"), ("forward", None, "forward")]:
+    for name, (dudt, loss) in variants.items():
         policy = cost._policy("mean_flow", size, **({"meanflow_dudt": dudt} if dudt else {}))
         torch.manual_seed(5)
-        losses[name] = (policy.compute_loss(batch).loss if how is None else cost._local_loss(policy, batch, how)).item()
+        losses[name] = (policy.compute_loss(batch).loss if loss is None else loss(policy, batch)).item()
     assert losses["one_call"] == pytest.approx(losses["fd"], rel=1e-5)
+    assert losses["two_calls"] == pytest.approx(losses["fd"], rel=1e-6)
     assert losses["forward"] == pytest.approx(losses["jvp"], rel=1e-3)
     assert losses["fd"] == pytest.approx(losses["jvp"], rel=1e-4)
 
@@ -42,9 +46,13 @@ def test_timing_rows_are_finite_ratios_to_flow_matching(cost, monkeypatch):
     monkeypatch.setattr(cost, "BATCH", 8)
     res = cost.time_size("tiny", (32, 1, 2, 1), reps=1, warmup=0)
     names = [row["variant"] for row in res["rows"]]
-    assert names == ["FM", "jvp", "finite_difference", "fd, one call (B + 2n rows)", "forward difference (n rows)"]
+    assert names == ["FM", "jvp", "finite_difference", "fd, one call (B + 2n rows)", "fd, two calls (B, then 2n rows)",
+                     "forward difference (n rows)"]
     assert all(row["step_ms"] > 0 and 0 < row["vs_fm"] < float("inf") for row in res["rows"])
     assert "| tiny | finite_difference |" in cost.table([res])
+    mixed = cost.time_size("tiny", (32, 1, 2, 1), reps=1, warmup=0, autocast=torch.bfloat16)
+    assert "fd, one call (B + 2n rows)" not in [row["variant"] for row in mixed["rows"]]   # two calls under autocast
+    assert "| tiny | bfloat16 | finite_difference |" in cost.table([mixed])
 
 
 def test_quality_runs_train_the_multimodal_mean_flow_model_with_each_dudt(cost, tmp_path, monkeypatch):
@@ -90,3 +98,13 @@ def test_ablation_script_sets_the_cli_trainings_dudt(monkeypatch):
     for dudt in ("jvp", "finite_difference"):
         script.use_dudt(dudt)
         assert train_mod.decoder_config(cfg, 39, 4, ["push"]).meanflow_dudt == dudt
+
+
+def test_bad_device_options_are_one_line_errors(cost, capsys):
+    with pytest.raises(SystemExit):
+        cost.main(["--autocast", "none,fp8", "--precision-only"])
+    assert "--autocast: expected a comma-separated list of ['none', 'bf16'], got 'none,fp8'" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit):
+            cost.main(["--device", "cuda", "--precision-only"])
+        assert "--device: expected a device this torch can use, got 'cuda'" in capsys.readouterr().err

@@ -87,10 +87,11 @@ class DecoderConfig:
     meanflow_time_std: float = 1.0
     meanflow_adaptive_p: float = 0.5
     meanflow_adaptive_c: float = 1e-3
-    # How training gets du/dt for the r ≠ t rows: "finite_difference" (central difference in one
-    # no-grad call; float32/float64 weights only, under autocast the call runs in float32) or "jvp"
-    # (exact, forward-mode AD; any dtype). A step costs 1.20–1.24× a flow-matching step with the
-    # difference, 1.38–1.55× with the JVP; the two train alike (same on-route share within seed noise, 3 seeds of the multimodal
+    # How training gets du/dt for the r ≠ t rows: "finite_difference" (central difference over 2n
+    # shifted rows, in a no-grad second call on a CPU or under autocast, which then runs in float32,
+    # inside u's call on CUDA; float32/float64 weights only) or "jvp" (exact, forward-mode AD; any
+    # dtype). A step costs 1.20–1.24× a flow-matching step with the difference on a CPU (1.04–1.06×
+    # on an H200), 1.38–1.55× with the JVP (3.9–4.1× on the H200); the two train alike (same on-route share within seed noise, 3 seeds of the multimodal
     # task: docs/benchmarks/meanflow_cost.md). A saved config.json carries the value it trained
     # with; format-2 files, older than the field, read as "jvp" (ADDED_FIELDS).
     meanflow_dudt: str = "finite_difference"

@@ -159,7 +159,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   cond: Optional[Mapping[str, Any]] = None, ratio_r_neq_t: float = 0.5,
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
-                  one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled") -> Tensor:
+                  one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
+                  fd_one_call: Optional[bool] = None) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -170,6 +171,14 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     `dudt` ("jvp" | "finite_difference", see `meanflow_target`): with "finite_difference" u
     comes from one plain call over all B rows and du/dt from one no-grad call over the 2n
     shifted copies of the r ≠ t rows (`dudt_finite_difference`).
+
+    `fd_one_call`: put those 2n shifted rows into u's call instead (one call over B + 2n rows,
+    their outputs detached; the same target and gradients). None chooses by device: one call on
+    CUDA, where a step of these small networks costs kernel launches rather than rows (H200: 1.03×
+    an FM step against 1.33× for two calls), two calls elsewhere, where rows cost time and the
+    grad call's 2n extra rows would be kept for backward (CPU: 1.38–1.49× against 1.0–1.24×;
+    docs/benchmarks/meanflow_cost.md). Under autocast it is always two calls: the difference must
+    run in float32 while u runs in the autocast dtype.
 
     Why the per-element mean and not the paper's ‖Δ‖² (sum over H×D): the mean is the sum with
     c·H·D and the loss scaled by (H·D)^(p−1), i.e. c 64× larger relative to the error at H = 16,
@@ -203,7 +212,23 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     else:
         v_tangent = v
     deltas = []
-    if dudt == "finite_difference":
+    autocast = torch.is_autocast_enabled(a.device.type)
+    if fd_one_call and autocast:
+        raise ValueError("fd_one_call: expected False or None under autocast (the difference runs in float32, "
+                         "u in the autocast dtype), got True")
+    one_call = (a.device.type == "cuda" and not autocast) if fd_one_call is None else fd_one_call
+    if dudt == "finite_difference" and one_call and n > 0:
+        h, head = fd_step(z.dtype), slice(0, n)
+        step = h * v_tangent[head]
+        rows = lambda x: torch.cat([x, x[head], x[head]])                    # noqa: E731  B + 2n rows
+        c3 = {k: _map_tensors(c, rows) for k, c in (cond or {}).items()}
+        out = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **c3),
+                           torch.cat([z, z[head] + step, z[head] - step]), torch.cat([t, t[head] + h, t[head] - h]),
+                           torch.cat([r, r[head], r[head]]), dtype=a.dtype, name="avg_velocity")  # [B + 2n, H, D]
+        u, (plus, minus) = out[:B], out[B:].detach().chunk(2)
+        d = (plus - minus) / (2 * h)                                         # [n, H, D]
+        deltas.append(u - torch.cat([v_tangent[head] - _bcast(t[head] - r[head], v) * d, v[n:]]))
+    elif dudt == "finite_difference":
         u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
                          name="avg_velocity")                                # [B, H, D], r = t on rows n:
         target = v
