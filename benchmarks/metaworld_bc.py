@@ -63,6 +63,9 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     tag = f"_dart{args.demo_noise:g}" if args.demo_noise and decoder != "scripted_expert" else ""
     if decoder not in ("mlp_baseline", "scripted_expert") and args.batch_size != LEGACY_BATCH:  # theirs: fixed
         tag += f"_{args.steps}x{args.batch_size}"
+    target = ["--meanflow-target", args.meanflow_target] if decoder == "mean_flow" else []
+    if decoder == "mean_flow" and args.meanflow_target != "identity":
+        tag += f"_{args.meanflow_target}"
     run = Path(args.runs) / f"{task.split('/')[-1]}_s{seed}{tag}_{decoder}"  # task: one task, or a group (--multitask)
     run.mkdir(parents=True, exist_ok=True)
     log = run / "log.txt"
@@ -84,7 +87,7 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos),
               "--demo-noise", str(args.demo_noise), "--steps",
               str(args.steps), "--batch-size", str(args.batch_size), "--seed", str(seed), "--output-dir", str(run),
-              "--eval-episodes", "0",
+              "--eval-episodes", "0", *target,
               "--no-progress", *resume], log)
     n = args.n_action_steps            # an evaluation setting: one trained policy serves every n
     for dec, sampler, k in METHODS:
@@ -116,8 +119,11 @@ def recipe(run: Path) -> dict:
     shift = train.get("augment_shift", 0.0)
     if shift is None:                                   # the default of `action-decoder train`
         shift = DEFAULT_SHIFT if layout == "metaworld" else 0.0
-    return {"demos": train["demos"], "demo_noise": train.get("demo_noise", 0.0), "train_steps": train["steps"],
-            "batch_size": train["batch_size"], "state_layout": layout, "augment_shift": shift}
+    how = {"demos": train["demos"], "demo_noise": train.get("demo_noise", 0.0), "train_steps": train["steps"],
+           "batch_size": train["batch_size"], "state_layout": layout, "augment_shift": shift}
+    if saved.get("decoder_type") == "mean_flow":        # absent: saved before the field existed
+        how["meanflow_target"] = saved.get("meanflow_target", "identity")
+    return how
 
 
 def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
@@ -141,7 +147,7 @@ def collect(runs: Path, pattern: str = "*/eval_*.json") -> list[dict]:
 
 
 ROW_KEY = ("task", "seed", "decoder", "sampler", "steps", "episodes", "demos", "demo_noise", "train_steps",
-           "batch_size", "state_layout", "augment_shift", "n_action_steps")
+           "batch_size", "state_layout", "augment_shift", "n_action_steps", "meanflow_target")
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
@@ -151,7 +157,9 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
         return tuple(str(r.get(k)) for k in ROW_KEY)
 
     def dated(r):                       # a trained row from before batch sizes were recorded: batch 128
-        return {"batch_size": LEGACY_BATCH, **r} if "train_steps" in r else r
+        r = {"batch_size": LEGACY_BATCH, **r} if "train_steps" in r else r
+        # a MeanFlow row from before `meanflow_target` existed trained with the MeanFlow identity
+        return {"meanflow_target": "identity", **r} if r.get("decoder") == "mean_flow" else r
 
     kept = {key(r): r for r in map(dated, json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({key(r): r for r in map(dated, rows)})
@@ -242,6 +250,9 @@ def main(argv=None) -> None:
                    help="rows kept across invocations (default: --table with .json); the table is built from them")
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: merge the finished runs into --results and rebuild the table")
+    p.add_argument("--meanflow-target", default="identity", choices=["identity", "split"],
+                   help="MeanFlow's training target (`train --meanflow-target`); the table shows MeanFlow rows "
+                        "of this target beside the other decoders' rows")
     p.add_argument("--multitask", action="store_true",
                    help="train one policy on all of --tasks (task given through the context path)")
     args = p.parse_args(argv)
@@ -253,7 +264,8 @@ def main(argv=None) -> None:
     results = args.results = Path(args.results or Path(args.table).with_suffix(".json"))
     want = {"demos": args.demos, "demo_noise": args.demo_noise, "train_steps": args.steps,
             "batch_size": args.batch_size, "episodes": args.episodes,
-            "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT, "n_action_steps": args.n_action_steps}
+            "state_layout": "metaworld", "augment_shift": DEFAULT_SHIFT, "n_action_steps": args.n_action_steps,
+            "meanflow_target": args.meanflow_target}
     args.done = {}
     for r in [] if args.multitask else matching(merge(results, []), want):
         args.done.setdefault((f"metaworld/{r['task']}", r["seed"]), set()).add((r["decoder"], r["sampler"], r["steps"]))

@@ -40,8 +40,8 @@ COLUMNS = [("DDPM K=10", "DDPM", "ode", 10), ("FM K=1", "flow_matching", "ode", 
            ("MF K=2", "mean_flow", "ode", 2), ("FM-SDE K=10", "flow_matching", "sde", 10)]
 RECIPE_FIELDS = {"ratio": "meanflow_ratio_r_neq_t", "time_dist": "meanflow_time_dist",
                  "adaptive_p": "meanflow_adaptive_p", "adaptive_c": "meanflow_adaptive_c",
-                 "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt"}
-STRING_KEYS = ("time_dist", "flow_prediction", "tangent", "dudt")
+                 "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt", "target": "meanflow_target"}
+STRING_KEYS = ("time_dist", "flow_prediction", "tangent", "dudt", "target")
 LOSS_OPTIONS = ("one_step_share", "tangent")   # `meanflow_loss` keywords with no config field (measured, not adopted)
 TRAIN_OPTIONS = ("distill",)   # recipe keys of this benchmark's training loop (measured, not in the library)
 TEACHER_STEPS = 10             # Euler steps of the flow-matching teacher's ODE for `distill`

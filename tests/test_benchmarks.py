@@ -140,6 +140,12 @@ def test_bc_results_persist_across_invocations_and_the_table_keeps_one_recipe(mo
     assert noisy == {"push-v3": {("mean_flow", "ode", 1): {0: 0.2}}}
     replanned = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "n_action_steps": 4}))
     assert replanned == {"push-v3": {("mean_flow", "ode", 1): {0: 0.6}}}
+    # MeanFlow rows written before `meanflow_target` existed trained with the identity; a split row is kept apart.
+    assert {r["meanflow_target"] for r in merged} == {"identity"}
+    merged = metaworld_bc.merge(results, [{**row("push-v3", 0, 0.95), "meanflow_target": "split"}])
+    split = metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "meanflow_target": "split"}))
+    assert split == {"push-v3": {("mean_flow", "ode", 1): {0: 0.95}}}
+    assert metaworld_bc.tabulate(metaworld_bc.matching(merged, {**want, "meanflow_target": "identity"})) == table
 
     # A run whose rows a results file already holds is not trained again.
     args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "steps": 5000, "batch_size": 128,
@@ -158,7 +164,8 @@ def test_bc_results_persist_across_invocations_and_the_table_keeps_one_recipe(mo
              "recipe": {"demos": 10, "demo_noise": 0.0, "train_steps": 1500, "state_layout": "metaworld",
                         "augment_shift": 0.05}}))
     args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "results": results,
-                             "n_action_steps": 8, "episodes": 50, "steps": 5000, "batch_size": 128})
+                             "n_action_steps": 8, "episodes": 50, "steps": 5000, "batch_size": 128,
+                             "meanflow_target": "identity"})
     metaworld_bc.run_one("metaworld/hammer-v3", 0, "mean_flow", args)
     kept = [r for r in json.loads(results.read_text()) if r["task"] == "hammer-v3" and r["train_steps"] == 1500]
     assert sorted((r["steps"], r["success"]) for r in kept) == [(1, 0.25), (2, 0.75)], "the fresh row replaces 0.3"
@@ -340,3 +347,20 @@ def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tm
     assert len(rows) == 4
     for all_steps, first, last, last1 in [[float(x) for x in r] for r in rows]:
         assert all_steps > 0 and 0 <= first < all_steps and last1 <= last * 1.5 + 1e-6
+
+
+def test_bc_grid_trains_meanflow_with_the_requested_target_in_its_own_run_directory(monkeypatch, tmp_path):
+    from benchmarks import metaworld_bc
+
+    calls = []
+    monkeypatch.setattr(metaworld_bc, "_run", lambda cmd, log: calls.append(cmd))
+    monkeypatch.setattr(metaworld_bc, "_keep", lambda run, args: None)
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "n_action_steps": 4,
+                             "episodes": 50, "steps": 5000, "batch_size": 128, "demos": 10, "meanflow_target": "split"})
+    metaworld_bc.run_one("metaworld/push-v3", 0, "mean_flow", args)
+    train = calls[0]
+    assert train[train.index("--meanflow-target") + 1] == "split"
+    assert train[train.index("--output-dir") + 1].endswith("push-v3_s0_split_mean_flow")
+    calls.clear()
+    metaworld_bc.run_one("metaworld/push-v3", 0, "flow_matching", args)     # the field is MeanFlow's alone
+    assert "--meanflow-target" not in calls[0] and calls[0][calls[0].index("--output-dir") + 1].endswith("s0_flow_matching")

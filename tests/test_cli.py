@@ -247,6 +247,16 @@ def test_train_defaults_to_flow_matching_with_ten_euler_steps():
     assert (cfg.steps, cfg.demos, cfg.task) == (1500, 10, "metaworld/push")
 
 
+def test_train_meanflow_target_flag_reaches_the_decoder_config():
+    import tyro
+
+    from action_decoder.train import TrainConfig, decoder_config
+
+    cfg = tyro.cli(TrainConfig, args=["--decoder", "mean_flow", "--meanflow-target", "split"])
+    assert decoder_config(cfg, 39, 4, ["push-v3"]).meanflow_target == "split"
+    assert decoder_config(TrainConfig(decoder="mean_flow"), 39, 4, ["push-v3"]).meanflow_target == "identity"
+
+
 def test_a_second_run_on_a_locked_directory_fails_at_once_and_a_killed_holder_blocks_nothing(tmp_path, env):
     from action_decoder.run_dir import run_dir_lock
 

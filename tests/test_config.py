@@ -164,3 +164,16 @@ def test_new_configs_take_the_finite_difference_while_saved_ones_keep_their_dudt
     later = {k for version, added in ADDED_FIELDS.items() if version > 2 for k in added}
     path.write_text(json.dumps({**{k: v for k, v in saved.items() if k not in later}, "format_version": 2}))
     assert DecoderConfig.from_json(path).meanflow_dudt == "jvp"
+
+
+def test_meanflow_target_is_validated_and_a_format_4_checkpoint_reads_as_the_identity(tmp_path):
+    from action_decoder.config import ADDED_FIELDS
+
+    with pytest.raises(ValueError, match=r"meanflow_target: expected one of \['identity', 'split'\], got 'half'"):
+        DecoderConfig(meanflow_target="half")
+    cfg = DecoderConfig(decoder_type="mean_flow", meanflow_target="split")
+    cfg.to_json(tmp_path / "c.json")
+    assert DecoderConfig.from_json(tmp_path / "c.json").meanflow_target == "split"
+    v4 = {k: v for k, v in cfg.to_dict().items() if k not in ADDED_FIELDS[5]}
+    (tmp_path / "v4.json").write_text(json.dumps({**v4, "format_version": 4}))
+    assert DecoderConfig.from_json(tmp_path / "v4.json").meanflow_target == "identity"

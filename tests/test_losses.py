@@ -462,3 +462,33 @@ def test_finite_difference_in_one_call_gives_the_two_call_loss_and_gradients():
     with torch.autocast("cpu", dtype=torch.bfloat16), pytest.raises(
             ValueError, match="fd_one_call: expected False or None under autocast .*got True"):
         meanflow_loss(u, a.float(), cond={"state": state.float()}, dudt="finite_difference", fd_one_call=True)
+
+
+def test_split_target_is_exact_for_the_true_average_velocity(gaussian):
+    """target="split": the exact average velocity is additive over sub-intervals, so with the
+    oracle's u every r ≠ t row's target equals u (zero loss at ratio 1); the r = t rows still
+    regress the sampled a − e; a wrong sub-interval weighting would not vanish."""
+    a = gaussian.sample(64, torch.Generator().manual_seed(3))
+    exact = gaussian.avg_velocity
+    loss = meanflow_loss(exact, a, torch.Generator().manual_seed(1), ratio_r_neq_t=1.0, target="split")
+    assert loss.item() < 1e-20
+    assert meanflow_loss(exact, a, torch.Generator().manual_seed(1), ratio_r_neq_t=0.0, target="split") > 1e-2
+    swapped = lambda x, t, r: exact(x, t, r) * (1 + 0.1 * (r - t)).reshape(-1, 1, 1)     # noqa: E731  not additive
+    assert meanflow_loss(swapped, a, torch.Generator().manual_seed(1), ratio_r_neq_t=1.0, target="split") > 1e-6
+    with pytest.raises(ValueError, match=r"target: expected one of \['identity', 'split'\], got 'shortcut'"):
+        meanflow_loss(exact, a, target="shortcut")
+
+
+def test_policy_trains_with_the_configured_target():
+    """`DecoderConfig.meanflow_target="split"` reaches the loss: u over the batch, then two no-grad
+    calls over the r ≠ t rows (no du/dt, so no difference call and no JVP); it needs no float32."""
+    batch = {"state": torch.randn(32, 7), "actions": torch.randn(32, 16, 4)}
+    policy = _expert_policy(meanflow_target="split")
+    rows, grad = [], []
+    net = policy._flow_net
+    policy._flow_net = lambda x, t, r, **c: rows.append(x.shape[0]) or grad.append(torch.is_grad_enabled()) or net(x, t, r, **c)
+    loss = policy.compute_loss(batch, torch.Generator().manual_seed(0)).loss
+    n = round(policy.config.meanflow_ratio_r_neq_t * 32)
+    assert rows == [32, n, n] and grad == [True, False, False] and torch.isfinite(loss)
+    bf16 = _expert_policy(meanflow_target="split").to(torch.bfloat16)
+    assert torch.isfinite(bf16.compute_loss(batch).loss)

@@ -22,6 +22,7 @@ BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
 SDE_MODES = ("churn", "fixed", "explore")
 MEANFLOW_VELOCITIES = ("boundary", "identity")
 MEANFLOW_DUDT = ("jvp", "finite_difference")
+MEANFLOW_TARGETS = ("identity", "split")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 RTC_HORIZONS = ("auto", "overlap", "execution")        # which rows of prev_chunk RTC guides
@@ -30,7 +31,7 @@ CAMERA_PREFIX = "observation.images."                   # LeRobot's camera featu
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 4
+CONFIG_FORMAT_VERSION = 5
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -38,6 +39,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     4: {"cameras": (), "image_size": 64, "image_encoder": "conv", "image_tokens_per_camera": 4,
         "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 0,
         "rtc_horizon": "overlap"},
+    5: {"meanflow_target": "identity"},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -95,6 +97,11 @@ class DecoderConfig:
     # task: docs/benchmarks/meanflow_cost.md). A saved config.json carries the value it trained
     # with; format-2 files, older than the field, read as "jvp" (ADDED_FIELDS).
     meanflow_dudt: str = "finite_difference"
+    # The r ≠ t rows' regression target (`flows.losses.meanflow_loss`): "identity", the MeanFlow
+    # identity v − (t − r)·du/dt (`meanflow_dudt` applies); "split", interval consistency λ·u(z, t, s)
+    # + (1 − λ)·u(z_s, s, r) from two no-grad calls, no du/dt (docs/benchmarks/meanflow_ablations.md).
+    # Format-4 files, older than the field, read as "identity".
+    meanflow_target: str = "identity"
     # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
     # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
     flow_prediction: str = "velocity"
@@ -166,6 +173,7 @@ class DecoderConfig:
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
+        _choice("meanflow_target", self.meanflow_target, MEANFLOW_TARGETS)
         if self.flow_sde_t_min is not None:
             _finite("flow_sde_t_min", self.flow_sde_t_min)
             if not 0.0 < self.flow_sde_t_min <= 1.0:

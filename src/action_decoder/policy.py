@@ -231,14 +231,15 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond)
         elif cfg.decoder_type == "mean_flow":
             weights = self.model.head.weight.dtype
-            if cfg.meanflow_dudt == "finite_difference" and weights not in (torch.float32, torch.float64):
+            if (cfg.meanflow_target == "identity" and cfg.meanflow_dudt == "finite_difference"
+                    and weights not in (torch.float32, torch.float64)):
                 raise ValueError(f"meanflow_dudt: 'finite_difference' needs float32 or float64 weights, got "
                                  f"{weights} (set meanflow_dudt='jvp' to train in lower precision)")
             loss = meanflow_loss(self._flow_net, actions, generator, cond,
                                  ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, time_mean=cfg.meanflow_time_mean,
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
-                                 dudt=cfg.meanflow_dudt)
+                                 dudt=cfg.meanflow_dudt, target=cfg.meanflow_target)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)

@@ -108,6 +108,9 @@ class TrainConfig:
     """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     meanflow_time_dist: Literal["uniform", "logit_normal"] = "uniform"
     """MeanFlow: distribution of (t, r); uniform covers the whole interval that 1-step sampling uses."""
+    meanflow_target: Literal["identity", "split"] = "identity"
+    """MeanFlow: the r ≠ t rows' target, the MeanFlow identity (du/dt) or interval consistency
+    ("split", `flows.losses.meanflow_loss`)."""
     flow_prediction: Optional[Literal["velocity", "sample"]] = None
     """FM/MeanFlow head: the velocity, or the clean chunk it aims at. None: the clean chunk for
     MeanFlow (1-step success 75.2 → 78.2 % on 8 hard tasks), the velocity for FM (GO-1's head)."""
@@ -336,7 +339,8 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
-        meanflow_time_dist=cfg.meanflow_time_dist, flow_prediction=flow_prediction(cfg),
+        meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
+        flow_prediction=flow_prediction(cfg),
         extra={"tasks": tasks, "train": asdict(cfg)})
 
 

@@ -115,6 +115,7 @@ def meanflow_target(avg_velocity: AvgVelocity, z: Tensor, t: Tensor, r: Tensor, 
 
 TIME_DISTS = ("logit_normal", "uniform")
 TANGENTS = ("sampled", "boundary")
+TARGETS = ("identity", "split")
 
 
 def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: float,
@@ -160,7 +161,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
                   one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
-                  fd_one_call: Optional[bool] = None) -> Tensor:
+                  fd_one_call: Optional[bool] = None, target: str = "identity") -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -191,12 +192,20 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     network's own instantaneous (marginal) velocity, from one extra no-grad call over those rows;
     its target has no sampling variance, and for the exact average velocity it is exact per row.
     The r = t rows regress a − e either way, which is what trains u_θ(z, t, t).
+
+    `target`: how the r ≠ t rows get theirs. "identity": the MeanFlow identity above (`dudt`,
+    `tangent` apply). "split": interval consistency (SplitMeanFlow) — with s = t + λ(r − t),
+    λ ~ U(0, 1), u₁ = sg(u_θ(z, t, s)), z_s = z + (s − t)·u₁, u₂ = sg(u_θ(z_s, s, r)), the target is
+    λ·u₁ + (1 − λ)·u₂ (the exact average velocity is additive over sub-intervals); two no-grad
+    calls over the n rows, no du/dt.
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
         raise ValueError(f"meanflow_dudt: expected one of {list(MEANFLOW_DUDT)}, got {dudt!r}")
     if tangent not in TANGENTS:
         raise ValueError(f"tangent: expected one of {list(TANGENTS)}, got {tangent!r}")
+    if target not in TARGETS:
+        raise ValueError(f"target: expected one of {list(TARGETS)}, got {target!r}")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
@@ -211,6 +220,22 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         v_tangent = torch.cat([v_hat, v[n:]])
     else:
         v_tangent = v
+    if target == "split":
+        u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
+                         name="avg_velocity")                                # [B, H, D]
+        goal = v
+        if n > 0:
+            head, c = slice(0, n), slice_cond(cond, slice(0, n))
+            lam = torch.rand(n, generator=generator, device=a.device, dtype=a.dtype)
+            s = t[head] + lam * (r[head] - t[head])                          # [n] t ≤ s ≤ r
+            call = lambda x, t0, t1: checked_call(lambda xx, aa, bb: avg_velocity(xx, aa, bb, **c), x, t0, t1,  # noqa: E731
+                                                  dtype=a.dtype, name="avg_velocity")
+            with torch.no_grad():
+                u1 = call(z[head], t[head], s)                               # [n, H, D] over [t, s]
+                u2 = call(z[head] + _bcast(s - t[head], v) * u1, s, r[head])  # over [s, r]
+            goal = torch.cat([_bcast(lam, v) * u1 + _bcast(1 - lam, v) * u2, v[n:]])
+        error = (u - goal).square().mean((1, 2))
+        return ((error.detach() + adaptive_c).pow(-adaptive_p) * error).mean()
     deltas = []
     autocast = torch.is_autocast_enabled(a.device.type)
     if fd_one_call and autocast:
