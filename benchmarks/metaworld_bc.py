@@ -216,7 +216,9 @@ def write_table(table: dict, path: Path, args, results: Path) -> str:
             f"{args.episodes} evaluation episodes per seed on layouts disjoint from the demonstrations (seed s: "
             f"demonstrations from layouts s·1000 + k, evaluation on 1 000 000 + s·1000 + j); "
             f"Meta-World state layout (relative positions) and {DEFAULT_SHIFT} m shift augmentation. "
-            f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
+            + (f"MeanFlow trained with `meanflow_target=\"{args.meanflow_target}\"`. "
+               if getattr(args, "meanflow_target", "identity") != "identity" else "")
+            + f"Built from `{results}` by `python -m benchmarks.metaworld_bc`.\n\n"
             + "\n".join(lines) + "\n")
     notes = path.read_text().partition(NOTES)[2] if path.is_file() else ""
     path.parent.mkdir(parents=True, exist_ok=True)

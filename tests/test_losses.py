@@ -477,6 +477,8 @@ def test_split_target_is_exact_for_the_true_average_velocity(gaussian):
     assert meanflow_loss(swapped, a, torch.Generator().manual_seed(1), ratio_r_neq_t=1.0, target="split") > 1e-6
     with pytest.raises(ValueError, match=r"target: expected one of \['identity', 'split'\], got 'shortcut'"):
         meanflow_loss(exact, a, target="shortcut")
+    with pytest.raises(ValueError, match=r"tangent: applies to target='identity'; .*got 'boundary'"):
+        meanflow_loss(exact, a, target="split", tangent="boundary")
 
 
 def test_policy_trains_with_the_configured_target():

@@ -206,6 +206,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         raise ValueError(f"tangent: expected one of {list(TANGENTS)}, got {tangent!r}")
     if target not in TARGETS:
         raise ValueError(f"target: expected one of {list(TARGETS)}, got {target!r}")
+    if target == "split" and tangent != "sampled":
+        raise ValueError(f"tangent: applies to target='identity'; expected 'sampled' with target='split', got {tangent!r}")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,
@@ -234,8 +236,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                 u1 = call(z[head], t[head], s)                               # [n, H, D] over [t, s]
                 u2 = call(z[head] + _bcast(s - t[head], v) * u1, s, r[head])  # over [s, r]
             goal = torch.cat([_bcast(lam, v) * u1 + _bcast(1 - lam, v) * u2, v[n:]])
-        error = (u - goal).square().mean((1, 2))
-        return ((error.detach() + adaptive_c).pow(-adaptive_p) * error).mean()
+        return _adaptive_mean(u - goal, adaptive_p, adaptive_c)
     deltas = []
     autocast = torch.is_autocast_enabled(a.device.type)
     if fd_one_call and autocast:
@@ -273,6 +274,10 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         u = checked_call(lambda x, tt: avg_velocity(x, tt, tt, **c), z[sub], t[sub], dtype=a.dtype,
                          name="avg_velocity")
         deltas.append(u - v[sub])
-    error = torch.cat(deltas).square().mean((1, 2))                       # [B] mean(Δ²) over H×D
-    weight = (error.detach() + adaptive_c).pow(-adaptive_p)
-    return (weight * error).mean()
+    return _adaptive_mean(torch.cat(deltas), adaptive_p, adaptive_c)
+
+
+def _adaptive_mean(delta: Tensor, p: float, c: float) -> Tensor:
+    """mean(w·error) with error = mean(Δ²) over H×D per row and w = sg(1 / (error + c)^p)."""
+    error = delta.square().mean((1, 2))                                    # [B]
+    return ((error.detach() + c).pow(-p) * error).mean()
