@@ -364,3 +364,22 @@ def test_bc_grid_trains_meanflow_with_the_requested_target_in_its_own_run_direct
     calls.clear()
     metaworld_bc.run_one("metaworld/push-v3", 0, "flow_matching", args)     # the field is MeanFlow's alone
     assert "--meanflow-target" not in calls[0] and calls[0][calls[0].index("--output-dir") + 1].endswith("s0_flow_matching")
+
+
+def test_bc_table_of_a_meanflow_target_shows_the_tasks_it_was_measured_on(tmp_path):
+    from benchmarks import metaworld_bc
+
+    def row(task, decoder, steps, success, **kw):
+        return {"task": task, "seed": 0, "decoder": decoder, "sampler": "ode", "steps": steps, "episodes": 50,
+                "demos": 10, "demo_noise": 0.0, "train_steps": 5000, "batch_size": 128, "state_layout": "metaworld",
+                "augment_shift": 0.05, "n_action_steps": 4, "success": success, **kw}
+
+    results, table = tmp_path / "bc.json", tmp_path / "split.md"
+    metaworld_bc.merge(results, [row("push-v3", "flow_matching", 10, 0.9), row("hammer-v3", "flow_matching", 10, 0.8),
+                                 row("push-v3", "mean_flow", 1, 0.7), row("hammer-v3", "mean_flow", 1, 0.6),
+                                 row("push-v3", "mean_flow", 1, 0.75, meanflow_target="split")])
+    metaworld_bc.main(["--report-only", "--meanflow-target", "split", "--table", str(table), "--results", str(results),
+                       "--runs", str(tmp_path / "runs"), "--tasks", "metaworld/push"])
+    text = table.read_text()
+    assert "| push-v3 | 90 (1) | 75 (1) |" in text and "hammer-v3" not in text
+    assert 'MeanFlow trained with `meanflow_target="split"`' in text
