@@ -243,26 +243,24 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         raise ValueError("fd_one_call: expected False or None under autocast (the difference runs in float32, "
                          "u in the autocast dtype), got True")
     one_call = (a.device.type == "cuda" and not autocast) if fd_one_call is None else fd_one_call
-    if dudt == "finite_difference" and one_call and n > 0:
-        h, head = fd_step(z.dtype), slice(0, n)
-        step = h * v_tangent[head]
-        rows = lambda x: torch.cat([x, x[head], x[head]])                    # noqa: E731  B + 2n rows
-        c3 = {k: _map_tensors(c, rows) for k, c in (cond or {}).items()}
-        out = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **c3),
-                           torch.cat([z, z[head] + step, z[head] - step]), torch.cat([t, t[head] + h, t[head] - h]),
-                           torch.cat([r, r[head], r[head]]), dtype=a.dtype, name="avg_velocity")  # [B + 2n, H, D]
-        u, (plus, minus) = out[:B], out[B:].detach().chunk(2)
-        d = (plus - minus) / (2 * h)                                         # [n, H, D]
+    if dudt == "finite_difference":
+        head = slice(0, n)
+        if one_call and n > 0:                          # u and the 2n shifted rows in one call
+            h = fd_step(z.dtype)
+            step = h * v_tangent[head]
+            rows = lambda x: torch.cat([x, x[head], x[head]])                # noqa: E731  B + 2n rows
+            c3 = {k: _map_tensors(c, rows) for k, c in (cond or {}).items()}
+            out = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **c3),
+                               torch.cat([z, z[head] + step, z[head] - step]), torch.cat([t, t[head] + h, t[head] - h]),
+                               torch.cat([r, r[head], r[head]]), dtype=a.dtype, name="avg_velocity")  # [B + 2n, H, D]
+            u, (plus, minus) = out[:B], out[B:].detach().chunk(2)
+            d = (plus - minus) / (2 * h)                                     # [n, H, D]
+        else:                                           # u, then the difference in a no-grad call
+            u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
+                             name="avg_velocity")                            # [B, H, D], r = t on rows n:
+            d = dudt_finite_difference(avg_velocity, z[head], t[head], r[head], v_tangent[head],
+                                       slice_cond(cond, head)) if n > 0 else v[:0]
         deltas.append(u - torch.cat([v_tangent[head] - _bcast(t[head] - r[head], v) * d, v[n:]]))
-    elif dudt == "finite_difference":
-        u = checked_call(lambda x, tt, rr: avg_velocity(x, tt, rr, **(cond or {})), z, t, r, dtype=a.dtype,
-                         name="avg_velocity")                                # [B, H, D], r = t on rows n:
-        target = v
-        if n > 0:
-            d = dudt_finite_difference(avg_velocity, z[:n], t[:n], r[:n], v_tangent[:n],
-                                       slice_cond(cond, slice(0, n)))
-            target = torch.cat([v_tangent[:n] - _bcast(t[:n] - r[:n], v) * d, v[n:]])
-        deltas.append(u - target)
     elif n > 0:
         sub = slice(0, n)
         u, target = meanflow_target(avg_velocity, z[sub], t[sub], r[sub], v_tangent[sub],
