@@ -60,7 +60,7 @@ def test_ratio_is_one_on_policy_and_checked(decoder):
             "chain": res.chain, "grid": res.grid, "logp_old": res.step_log_probs, "logp_ref": res.step_log_probs,
             "adv": torch.randn(6, generator=gen), "ret": torch.zeros(6)}
     cfg = SimpleNamespace(trained_steps=2, ppo_epochs=1, minibatch_size=6, logprob_reduce="mean", ratio_tol=1e-4,
-                          clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0)
+                          clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed")
     opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=1e-2)
     stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, gen)
     assert stats["ratio_dev_before_update"] < 1e-5
@@ -340,7 +340,7 @@ def test_ppo_update_rescores_in_micro_batches(monkeypatch):
     base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
     data = _ppo_data(base)
     cfg = SimpleNamespace(trained_steps=3, ppo_epochs=2, minibatch_size=12, logprob_reduce="sum", ratio_tol=1e-4,
-                          clip_eps=0.2, kl_coef=0.1, target_kl=100.0, vf_coef=0.5, grad_clip=1.0)
+                          clip_eps=0.2, kl_coef=0.1, target_kl=100.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed")
     results = []
     for budget in (10**6, 6):                                    # one micro-batch; then 6 // 3 = 2 rows each
         monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", budget)
@@ -367,7 +367,7 @@ def test_approx_kl_stays_finite_where_a_step_density_collapses():
     data["logp_old"][3, 4] += 200.0
     cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce="sum",
                           ratio_tol=float("inf"), clip_eps=0.2, kl_coef=0.0, target_kl=100.0, vf_coef=0.5,
-                          grad_clip=1.0)
+                          grad_clip=1.0, lr_schedule="fixed")
     opt = torch.optim.SGD(policy.parameters(), lr=0.0)
     stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
     assert stats["approx_kl"] == pytest.approx(199.0 / (12 * 5), rel=1e-3)
@@ -413,3 +413,38 @@ def test_finetune_refuses_an_output_dir_in_use(tmp_path):
             finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))
     with pytest.raises(FileNotFoundError):      # lock released: the run gets as far as the checkpoint
         finetune(FinetuneConfig(checkpoint=str(tmp_path / "missing"), output_dir=str(out)))
+
+
+def test_adapt_lr_follows_the_kl_band_within_bounds():
+    assert ppo.adapt_lr(1e-4, 0.5, 0.05, 1e-6, 1e-3) == pytest.approx(1e-4 / 1.5)       # beyond 2 × target
+    assert ppo.adapt_lr(1e-4, 0.01, 0.05, 1e-6, 1e-3) == pytest.approx(1.5e-4)          # below target / 2
+    assert ppo.adapt_lr(1e-4, 0.05, 0.05, 1e-6, 1e-3) == 1e-4                           # inside the band
+    assert ppo.adapt_lr(1.1e-6, 9.0, 0.05, 1e-6, 1e-3) == 1e-6                          # floor
+    assert ppo.adapt_lr(9e-4, 0.0, 0.05, 1e-6, 1e-3) == 1e-3                            # ceiling
+
+
+@pytest.mark.parametrize("target_kl, moves", [(1e-9, "down"), (1e9, "up")])
+def test_adaptive_lr_is_set_by_the_kl_after_each_update(target_kl, moves):
+    """With the adaptive schedule, only minibatches measured after an update move the velocity
+    network's learning rate (group 0), by 1.5 per minibatch, and the other groups keep theirs; the
+    fixed schedule leaves every group alone. The rate stays in the optimizer's state."""
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(policy)
+    value = ValueNet(S)
+    lrs = {}
+    for schedule in ("fixed", "adaptive"):
+        p, v = copy.deepcopy(policy), copy.deepcopy(value)
+        opt = torch.optim.Adam([{"params": list(p.model.parameters()), "lr": 1e-4},
+                                {"params": list(v.parameters()), "lr": 1e-3}])
+        cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=3, logprob_reduce="sum",
+                              ratio_tol=1e-4, clip_eps=0.2, kl_coef=0.0, target_kl=target_kl, vf_coef=0.5,
+                              grad_clip=1.0, lr=1e-4, lr_schedule=schedule)
+        stats = ppo_update(p, v, opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+        lrs[schedule] = (stats["lr"], opt.param_groups[0]["lr"], opt.param_groups[1]["lr"], stats["epochs"])
+    assert lrs["fixed"][:3] == (1e-4, 1e-4, 1e-3)
+    lr, group_lr, critic_lr, _ = lrs["adaptive"]
+    assert lr == group_lr and critic_lr == 1e-3
+    if moves == "up":      # 4 minibatches of 3 rows, the first before any update: 3 × 1.5
+        assert lr == pytest.approx(1e-4 * 1.5 ** 3)
+    else:                  # the second minibatch is past 1.5 × target: one cut, then the early stop
+        assert lr == pytest.approx(1e-4 / 1.5) and lrs["adaptive"][3] == 1

@@ -78,7 +78,11 @@ class FinetuneConfig:
     learn_sigma: bool = True
     """Learn a multiplier of σ(t) (starts at 1)."""
     lr: float = 1e-4
-    """Velocity network learning rate (3e-4 jumps by several nats of KL in one step; 3e-5 barely moves)."""
+    """Velocity network learning rate (with `--lr-schedule adaptive`, its starting value)."""
+    lr_schedule: Literal["adaptive", "fixed"] = "fixed"
+    """PPO: "adaptive" divides the velocity network's learning rate by 1.5 after a minibatch update
+    that takes the policy beyond 2 × `target_kl` from the rollout policy and multiplies it by 1.5
+    below `target_kl` / 2 (within [lr / 100, lr × 10]); "fixed" keeps `lr`."""
     sigma_lr: float = 3e-3
     critic_lr: float = 1e-3
     gamma: float = 0.99
@@ -382,7 +386,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         history.append(row)
         logger.log(env_steps, row, "rl")
         ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
-                f"epochs {row['epochs']}" if "ratio_min" in row else ""
+                f"epochs {row['epochs']} lr {row['lr']:.2e}" if "ratio_min" in row else ""
         print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
               f"σ×{mult:.3f} kl_bc {kl_rollout:.4f}{ratio}", flush=True)
         if cfg.eval_every and iteration % cfg.eval_every == 0:

@@ -88,13 +88,31 @@ for the default network): a minibatch of 512 chains × 10 steps kept every call'
 until its one backward, 3.5 GB; micro-batches accumulate the same gradient in ≈ 180 MB."""
 
 
+LR_STEP = 1.5
+"""Factor by which `adapt_lr` lowers or raises the learning rate."""
+
+
+def adapt_lr(lr: float, approx_kl: float, target_kl: float, lo: float, hi: float) -> float:
+    """The KL-adaptive learning rate of common PPO code (rsl_rl's "adaptive" schedule): lr / 1.5 when
+    an update took the policy beyond 2 × `target_kl` from the rollout policy, lr × 1.5 when it stayed
+    below `target_kl` / 2, unchanged in between; kept within [lo, hi]."""
+    if approx_kl > 2.0 * target_kl:
+        lr = lr / LR_STEP
+    elif approx_kl < 0.5 * target_kl:
+        lr = lr * LR_STEP
+    return min(max(lr, lo), hi)
+
+
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
                data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
 
     `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
     logp_old / logp_ref [N, K] (rollout policy / frozen BC policy), adv, ret [N].
-    `update_policy=False` trains only the critic (warm-up).
+    `update_policy=False` trains only the critic (warm-up). With `cfg.lr_schedule == "adaptive"` the
+    first parameter group's learning rate (the velocity network's) follows `adapt_lr` after every
+    minibatch measured past an update, within [`cfg.lr` / 100, `cfg.lr` × 10]; it lives in the
+    optimizer's state, so it carries over iterations and resumes.
 
     Only the trained steps are re-scored (each step's density needs only its stored start and
     end states), in micro-batches whose losses are back-propagated at once (`MICROBATCH_ROW_CALLS`):
@@ -161,6 +179,9 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                 logs["ratio_mean"].append(float(ratio.mean()))
                 logs["ratio_min"].append(float(ratio.min()))
                 logs["ratio_max"].append(float(ratio.max()))
+                if cfg.lr_schedule == "adaptive" and not first:    # the first minibatch precedes every update
+                    group = optimizer.param_groups[0]
+                    group["lr"] = adapt_lr(group["lr"], approx_kl, cfg.target_kl, cfg.lr / 100, cfg.lr * 10)
                 if approx_kl > 1.5 * cfg.target_kl:    # too far from the rollout policy: stop here
                     optimizer.zero_grad(set_to_none=True)
                     stop = True
@@ -176,6 +197,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
         stats["epochs"] = epoch + 1
         if stop:
             break
+    stats["lr"] = float(optimizer.param_groups[0]["lr"])
     for k, v in logs.items():
         if v:
             stats[k] = min(v) if k == "ratio_min" else max(v) if k == "ratio_max" else sum(v) / len(v)
