@@ -32,6 +32,9 @@ from pathlib import Path
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
+RUN_FIELDS = frozenset({"checkpoint", "output_dir", "task", "algo", "sigma", "env_steps", "max_cpu_minutes", "seed",
+                        "eval_episodes", "eval_every", "checkpoint_every", "resume", "wandb", "wandb_project"})
+"""`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
 policy that succeeds often enough for its rollouts to carry a signal."""
@@ -146,6 +149,19 @@ def _gain(r: dict) -> float:
     return 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
 
 
+def recipe(config: dict) -> str:
+    """The `finetune` options a run set away from `FinetuneConfig`'s defaults ("k=v, …"), or
+    "defaults"; options a run's config does not record had their default."""
+    import dataclasses
+
+    from action_decoder.rl.finetune import FinetuneConfig
+
+    base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
+    changed = [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+               for k, v in sorted(config.items()) if k in base and v != base[k]]
+    return ", ".join(changed) or "defaults"
+
+
 def collect(runs: Path) -> list[dict]:
     """One row per finished fine-tuning under `runs` (each seed its own): success before/after,
     training success at the end of the run, and the evaluation curve."""
@@ -166,7 +182,7 @@ def collect(runs: Path) -> list[dict]:
             cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in hist}
             tail = hist[-10:]
             rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
-                         "sigma": log["config"].get("sigma"),
+                         "sigma": log["config"].get("sigma"), "recipe": recipe(log["config"]),
                          "seed": log["config"].get("seed", 0), "half": half(log["task"]),
                          "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"],
                          "ft_k": ft_k, "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
@@ -182,12 +198,12 @@ def collect(runs: Path) -> list[dict]:
 
 
 def _key(r: dict) -> tuple:
-    return r["task"], r["decoder"], r["algo"], r.get("seed", 0)
+    return r["task"], r["decoder"], r["algo"], r.get("recipe", "defaults"), r.get("seed", 0)
 
 
 def merge(results: Path, rows: list[dict]) -> list[dict]:
     """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
-    (task, decoder, algo, seed); written back so that tables and plots can be rebuilt from every run kept."""
+    (task, decoder, algo, recipe, seed); written back so that tables and plots can be rebuilt from every run kept."""
     kept = {_key(r): r for r in (json.loads(results.read_text()) if results.is_file() else [])}
     kept.update({_key(r): r for r in rows})
     merged = sorted(kept.values(), key=lambda r: (half(r["task"]), *_key(r)))
@@ -196,25 +212,32 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
     return merged
 
 
+def _how(r: dict) -> str:
+    """The algorithm, σ scale and recipe of a row: "ppo", "ppo, a = 0.25", "ppo, a = 0.25, lr_schedule=adaptive"."""
+    how = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
+    return how if r.get("recipe", "defaults") == "defaults" else f"{how}, {r['recipe']}"
+
+
 def _num(r: dict, key: str, scale: float, fmt: str) -> str:
     """A table cell; "–" for rows recorded before the column existed."""
     return "–" if r.get(key) is None else format(scale * r[key], fmt)
 
 
 def summary(rows: list[dict]) -> list[str]:
-    """Mean gain per (half, decoder, algo) over seed-0 rows, and the seed-to-seed spread where a
-    (task, decoder) ran with several fine-tuning seeds."""
+    """Mean gain per (half, decoder, algo, recipe) over seed-0 rows, and the seed-to-seed spread where
+    a (task, decoder, recipe) ran with several fine-tuning seeds."""
     lines, groups, seeds = [], {}, {}
     for r in rows:
+        how = _how(r)
         if r.get("seed", 0) == 0:
-            groups.setdefault((half(r["task"]), r["decoder"], r["algo"]), []).append(_gain(r))
-        seeds.setdefault((r["task"], r["decoder"], r["algo"]), []).append(_gain(r))
-    for (h, dec, algo), gains in sorted(groups.items()):
-        lines.append(f"- {h} half, {dec} ({algo}): mean gain {sum(gains) / len(gains):+.1f} points over "
+            groups.setdefault((half(r["task"]), r["decoder"], how), []).append(_gain(r))
+        seeds.setdefault((r["task"], r["decoder"], how), []).append(_gain(r))
+    for (h, dec, how), gains in sorted(groups.items()):
+        lines.append(f"- {h} half, {dec} ({how}): mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(gains)} task(s) (seed 0)")
     spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
-    for (task, dec, algo), gains in spread:
-        lines.append(f"- noise: {task} {dec} ({algo}) gains over fine-tuning seeds: "
+    for (task, dec, how), gains in spread:
+        lines.append(f"- noise: {task} {dec} ({how}) gains over fine-tuning seeds: "
                      + ", ".join(f"{g:+.0f}" for g in gains) + f" (range {max(gains) - min(gains):.0f} points)")
     return lines
 
@@ -236,13 +259,12 @@ def task_set_text(task_set: dict, args) -> str:
 
 
 def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict | None = None) -> str:
-    lines = ["| half | task | decoder | algo, σ scale | seed | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
+    lines = ["| half | task | decoder | algo, σ scale, options other than the defaults | seed | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
              "fine-tuned (ODE) | gain (best over best) | training success, last 10 it. | KL to BC | CPU min | "
              "env steps | measured |",
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        algo = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
-        lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {algo} | {r.get('seed', 0)} | "
+        lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {_how(r)} | {r.get('seed', 0)} | "
                      f"{100 * r['bc']:.0f} (K={r['bc_steps']}) | {100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | "
                      f"{100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
                      f"{_num(r, 'train_success_last10', 100, '.0f')} | {_num(r, 'kl_bc_last', 1, '.1f')} | "
@@ -273,7 +295,8 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
             ax.plot(cpu, sde, marker="o", label="eval sde (20 ep.)")
             ax.plot(cpu, ode, marker="o", label="eval ode (20 ep.)")
             ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
-            ax.set(title=f"{r['task']} {r['decoder']} s{r.get('seed', 0)}", xlabel="CPU minutes", ylabel="success",
+            extra = "" if r.get("recipe", "defaults") == "defaults" else f"\n{r['recipe']}"
+            ax.set(title=f"{r['task']} {r['decoder']} s{r.get('seed', 0)}{extra}", xlabel="CPU minutes", ylabel="success",
                    ylim=(-0.02, 1.02))
             ax.grid(alpha=0.3)
         for ax in list(axes.flat)[len(curves):]:

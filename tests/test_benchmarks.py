@@ -253,6 +253,25 @@ def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path)
         "2026-11-23 |" in text                                         # a row from before the training-success column
     assert "- dev half, flow_matching (ppo): mean gain +40.0 points over 2 task(s) (seed 0)" in text
     assert not (tmp_path / "t.png").exists()                            # no curves kept: no plot
+    changed = dict(row("reach-v3", 0.7), recipe="lr_schedule=adaptive", sigma=0.25)   # one option changed
+    merged = rl_finetune.merge(results, [changed])
+    assert [(r["task"], r["ft_sde"]) for r in merged] == [("push-v3", 0.3), ("reach-v3", 0.9), ("reach-v3", 0.7)]
+    text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
+                                    argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
+    assert "| dev | reach-v3 | flow_matching | ppo, a = 0.25, lr_schedule=adaptive | 0 |" in text
+    assert "- dev half, flow_matching (ppo, a = 0.25, lr_schedule=adaptive): mean gain +50.0 points over 1 task(s)" in text
+    assert "- dev half, flow_matching (ppo): mean gain +40.0 points over 2 task(s) (seed 0)" in text
+
+
+def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    run_only = {"seed": 3, "max_cpu_minutes": 45.0, "sigma": 0.5, "output_dir": "x", "eval_every": 10}
+    assert rl_finetune.recipe({}) == rl_finetune.recipe(run_only) == "defaults"
+    assert rl_finetune.recipe({**run_only, "lr": 1e-4, "lr_schedule": "fixed"}) == "defaults"     # set to the default
+    assert rl_finetune.recipe({"lr_schedule": "adaptive", "kl_coef": 0.01, "lr": 1e-4}) == \
+        "kl_coef=0.01, lr_schedule=adaptive"
 
 
 def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):
