@@ -21,6 +21,7 @@ written from it; text below the table's notes marker is kept.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -152,8 +153,6 @@ def _gain(r: dict) -> float:
 def recipe(config: dict) -> str:
     """The `finetune` options a run set away from `FinetuneConfig`'s defaults ("k=v, …"), or
     "defaults"; options a run's config does not record had their default."""
-    import dataclasses
-
     from action_decoder.rl.finetune import FinetuneConfig
 
     base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
@@ -212,10 +211,15 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
     return merged
 
 
+def _changed(r: dict) -> str:
+    """A row's recipe when it differs from the defaults, else "" (rows from before the field: defaults)."""
+    return "" if r.get("recipe", "defaults") == "defaults" else r["recipe"]
+
+
 def _how(r: dict) -> str:
     """The algorithm, σ scale and recipe of a row: "ppo", "ppo, a = 0.25", "ppo, a = 0.25, lr_schedule=adaptive"."""
     how = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
-    return how if r.get("recipe", "defaults") == "defaults" else f"{how}, {r['recipe']}"
+    return f"{how}, {_changed(r)}" if _changed(r) else how
 
 
 def _num(r: dict, key: str, scale: float, fmt: str) -> str:
@@ -295,7 +299,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
             ax.plot(cpu, sde, marker="o", label="eval sde (20 ep.)")
             ax.plot(cpu, ode, marker="o", label="eval ode (20 ep.)")
             ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
-            extra = "" if r.get("recipe", "defaults") == "defaults" else f"\n{r['recipe']}"
+            extra = f"\n{_changed(r)}" if _changed(r) else ""
             ax.set(title=f"{r['task']} {r['decoder']} s{r.get('seed', 0)}{extra}", xlabel="CPU minutes", ylabel="success",
                    ylim=(-0.02, 1.02))
             ax.grid(alpha=0.3)
