@@ -4,6 +4,7 @@
     python -m benchmarks multimodal --quick                       # fewer steps → outputs/multimodal-quick/
     python -m benchmarks multimodal --only synthetic --decoders mean_flow --recipe one_step_share=0.25
     python -m benchmarks multimodal --only synthetic --decoders mean_flow --recipe distill=1   # FM teacher
+    python -m benchmarks multimodal --only obstacle --steps 12000 --device cuda   # train and sample on a GPU
 
 (a) synthetic: state s ~ N(0, I₄); the chunk [16, 4] is one of two routes
     0.5·s·h ± sin(πh)·(1, −0.6, 0.8, 0.4), h ∈ [0, 1], 50/50 (mode separation ≈ 1.0 RMS).
@@ -22,6 +23,8 @@ import functools
 import json
 import math
 import platform
+import re
+import sys
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -120,6 +123,8 @@ class Budget:
     demos: int = 100
     latency_reps: int = 30
     recipe: dict = field(default_factory=dict)
+    device: str = "cpu"        # where the policy trains and samples; data and environments stay on the CPU
+    log_every: int = 0         # print the training step and loss to stderr every this many steps (0: never)
 
 
 def use_loss_options(options: dict) -> None:
@@ -143,7 +148,8 @@ def distillation_term(student, teacher, state: torch.Tensor, noise: torch.Genera
     """Mean squared distance between the student's one-step chunk and a flow-matching teacher's
     K = TEACHER_STEPS ODE chunk from the same noise (the teacher's noise → data coupling)."""
     cfg = student.config
-    z = torch.randn(state.shape[0], cfg.action_chunk_size, cfg.action_dim, generator=noise)   # [B, H, D]
+    z = torch.randn(state.shape[0], cfg.action_chunk_size, cfg.action_dim, generator=noise,
+                    device=state.device)                                                         # [B, H, D]
     with torch.no_grad():
         target = teacher.sample({"state": state}, sampler="ode", steps=TEACHER_STEPS, noise=z).actions
     one = student.sample({"state": state}, sampler="ode", steps=1, noise=z).actions           # [B, H, D]
@@ -177,36 +183,47 @@ def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: 
                                    Budget(**{**b.__dict__, "recipe": {}}), seed)
         teacher.requires_grad_(False)
     torch.manual_seed(seed)
-    policy = make_policy(decoder, state_dim, action_dim, b)
+    policy = make_policy(decoder, state_dim, action_dim, b).to(b.device)
     policy.sigma.requires_grad_(False)
     params = [p for p in policy.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=1e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / 100) * 0.5 * (1 + math.cos(math.pi * min(s, b.steps) / b.steps)))
     ema = weight_average(policy, 0.999)
-    data, noise = torch.Generator().manual_seed(seed * 1000), torch.Generator().manual_seed(seed * 1000 + 500)
+    data = torch.Generator().manual_seed(seed * 1000)                    # batches are drawn on the CPU
+    noise = torch.Generator(b.device).manual_seed(seed * 1000 + 500)     # the loss's noise, on the policy's device
     t0 = time.process_time()
-    for _ in range(b.steps):
+    for step in range(1, b.steps + 1):
         state, actions = draw(data, b.batch)
-        optimizer_step(policy, {"state": state, "actions": actions}, noise, opt, sched, params, teacher, distill)
+        batch = {"state": state.to(b.device), "actions": actions.to(b.device)}
+        loss = optimizer_step(policy, batch, noise, opt, sched, params, teacher, distill)
         ema.update_parameters(policy)
+        if b.log_every and step % b.log_every == 0:
+            print(json.dumps({"decoder": decoder, "step": step, "of": b.steps, "loss": round(loss.item(), 5),
+                              "cpu_s": round(time.process_time() - t0, 1)}), file=sys.stderr, flush=True)
     trained = ema.module.eval()
     return trained, round(time.process_time() - t0 + teacher_s, 1)
 
 
+def device_of(policy) -> torch.device:
+    return next(policy.parameters()).device
+
+
 def sample(policy, state: torch.Tensor, sampler: str, steps: int, seed: int) -> torch.Tensor:
+    """Chunks [B, H, D] on the CPU for states [B, S] (any device)."""
+    device = device_of(policy)
     with torch.no_grad():
-        return policy.sample({"state": state}, sampler=sampler, steps=steps,
-                             generator=torch.Generator().manual_seed(seed)).actions      # [B, H, D]
+        return policy.sample({"state": state.to(device)}, sampler=sampler, steps=steps,
+                             generator=torch.Generator(device).manual_seed(seed)).actions.cpu()   # [B, H, D]
 
 
 def latency_ms(policy, state_dim: int, sampler: str, steps: int, reps: int) -> float:
-    """Median wall time of one chunk (batch 1) over `reps` calls after 3 warm-up calls."""
+    """Median wall time of one chunk (batch 1, back on the CPU) over `reps` calls after 3 warm-up calls."""
     state = torch.zeros(1, state_dim)
     times = []
     for i in range(reps + 3):
         t0 = time.perf_counter()
-        sample(policy, state, sampler, steps, i)
+        sample(policy, state, sampler, steps, i)                         # .cpu() waits for the GPU
         times.append(time.perf_counter() - t0)
     return 1000 * statistics.median(times[3:])
 
@@ -242,12 +259,12 @@ def run_obstacle(decoders: list, b: Budget, seed: int) -> dict:
         for label, dec, sampler, k in COLUMNS:
             if dec != decoder:
                 continue
-            gen = torch.Generator().manual_seed(777)
+            gen = torch.Generator(b.device).manual_seed(777)
 
             def act(obs, policy=policy, sampler=sampler, k=k, gen=gen):
                 with torch.no_grad():
-                    return policy.sample({"state": torch.from_numpy(obs)[None]}, sampler=sampler, steps=k,
-                                         generator=gen).actions[0].numpy()
+                    return policy.sample({"state": torch.from_numpy(obs)[None].to(b.device)}, sampler=sampler,
+                                         steps=k, generator=gen).actions[0].cpu().numpy()
             res = [rollout(act, 1_000_000 + seed * 1000 + j) for j in range(b.episodes)]
             ok = [r for r in res if r["success"]]
             out[label] = {"success": len(ok) / len(res),
@@ -282,6 +299,19 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def check_device(device: str) -> None:
+    """One line for a device this machine cannot train on."""
+    if device == "cpu":
+        return
+    if not re.fullmatch(r"cuda(:\d+)?", device):
+        raise ValueError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"--device: got {device!r}, but torch {torch.__version__} sees no CUDA device here")
+    index = int(device.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise ValueError(f"--device: got {device!r}, but torch sees {torch.cuda.device_count()} CUDA device(s)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks multimodal", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -296,10 +326,15 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"MeanFlow recipe overrides, keys {RECIPE_KEYS}")
     p.add_argument("--dudt", choices=["jvp", "finite_difference"], default=None,
                    help="MeanFlow's du/dt in training (DecoderConfig.meanflow_dudt; default: the config's)")
+    p.add_argument("--device", default="cpu",
+                   help="where the policies train and sample: cpu (default, one thread) or cuda[:N]")
+    p.add_argument("--log-every", type=int, default=0, metavar="N",
+                   help="print the training step and loss to stderr every N steps (default: never)")
     p.add_argument("--out", default=None, help="directory for the JSON (default docs/benchmarks/multimodal.json "
                    "for the full run; else outputs/multimodal[-quick]/multimodal_run.json)")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
+    check_device(a.device)
     b = Budget()
     if a.quick:
         b = Budget(steps=300, eval_states=128, episodes=20, demos=50, latency_reps=10)
@@ -307,6 +342,10 @@ def main(argv: list[str] | None = None) -> int:
         b = Budget(steps=3, hidden=32, layers=1, eval_states=4, samples=4, episodes=1, demos=2, latency_reps=1)
     if a.steps is not None:
         b.steps = a.steps
+    b.device = a.device
+    if a.log_every < 0:
+        raise ValueError(f"--log-every: expected a number of steps ≥ 0, got {a.log_every}")
+    b.log_every = a.log_every
     for kv in a.recipe:
         key, sep, value = kv.partition("=")
         if not sep or key not in RECIPE_KEYS:
@@ -320,12 +359,14 @@ def main(argv: list[str] | None = None) -> int:
         results = {t: (run_synthetic if t == "synthetic" else run_obstacle)(a.decoders, b, a.seed) for t in tasks}
     finally:
         use_loss_options({})
-    full = not (a.quick or a.tiny or a.only or a.recipe or a.steps is not None) and len(set(a.decoders)) == 3
+    full = (not (a.quick or a.tiny or a.only or a.recipe or a.steps is not None) and len(set(a.decoders)) == 3
+            and a.device == "cpu")
     out = Path(a.out or ("docs/benchmarks" if full else "outputs/multimodal-quick" if a.quick or a.tiny
                          else "outputs/multimodal"))
     out.mkdir(parents=True, exist_ok=True)
     meta = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
             "torch": torch.__version__, "threads": torch.get_num_threads(), "seed": a.seed,
+            "device": torch.cuda.get_device_name(a.device) if a.device.startswith("cuda") else "cpu",
             "budget": b.__dict__, "argv": argv}
     name = "multimodal" if full else "multimodal_run"                 # a partial run never replaces the table's
     (out / f"{name}.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))

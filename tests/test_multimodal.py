@@ -139,13 +139,17 @@ def test_one_step_rows_regress_the_one_step_map():
 def test_tiny_benchmark_runs(tmp_path, capsys):
     from benchmarks.__main__ import main                                       # python -m benchmarks multimodal
     assert main(["multimodal", "--tiny", "--decoders", "mean_flow", "--out", str(tmp_path),
-                 "--recipe", "one_step_share=0.5"]) == 0
+                 "--recipe", "one_step_share=0.5", "--log-every", "1"]) == 0
+    printed = capsys.readouterr()
+    progress = [json.loads(line) for line in printed.err.splitlines() if line.startswith("{")]
+    assert [(p["step"], p["of"]) for p in progress] == [(1, 3), (2, 3), (3, 3)] * 2     # synthetic, obstacle
+    assert all(p["decoder"] == "mean_flow" and p["loss"] > 0 for p in progress)
     data = json.loads((tmp_path / "multimodal_run.json").read_text())
     assert set(data["results"]) == {"synthetic", "obstacle"}
     assert set(data["results"]["synthetic"]) == {"MF K=1", "MF K=2"}
     assert data["meta"]["budget"]["recipe"] == {"one_step_share": 0.5}
     assert mm.policy_mod.meanflow_loss is meanflow_loss          # the loss option ends with the run
-    assert "| on a mode" in capsys.readouterr().out
+    assert "| on a mode" in printed.out
     with pytest.raises(ValueError, match="--recipe"):
         mm.main(["--tiny", "--recipe", "ratio"])
 
@@ -181,3 +185,26 @@ def test_distill_recipe_trains_a_teacher_and_counts_its_time(tmp_path):
     data = json.loads((tmp_path / "multimodal_run.json").read_text())
     assert data["meta"]["budget"]["recipe"] == {"distill": 1.0}
     assert set(data["results"]["synthetic"]) == {"MF K=1", "MF K=2"}
+
+
+def test_device_option_names_the_field_and_what_was_given(monkeypatch):
+    with pytest.raises(ValueError, match=r"--log-every: expected a number of steps ≥ 0, got -1"):
+        mm.main(["--tiny", "--log-every", "-1"])
+    with pytest.raises(ValueError, match=r"--device: expected cpu, cuda or cuda:N, got 'gpu'"):
+        mm.main(["--tiny", "--device", "gpu"])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"--device: got 'cuda', but torch .* sees no CUDA device"):
+        mm.main(["--tiny", "--device", "cuda"])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"--device: got 'cuda:1', but torch sees 1 CUDA device"):
+        mm.main(["--tiny", "--device", "cuda:1"])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_tiny_benchmark_runs_on_cuda(tmp_path):
+    assert mm.main(["--tiny", "--decoders", "flow_matching", "mean_flow", "--out", str(tmp_path),
+                    "--device", "cuda"]) == 0
+    data = json.loads((tmp_path / "multimodal_run.json").read_text())
+    assert data["meta"]["device"] != "cpu"
+    assert set(data["results"]["obstacle"]) >= {"FM K=10", "MF K=1"}
