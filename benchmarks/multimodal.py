@@ -23,9 +23,8 @@ import functools
 import json
 import math
 import platform
-import re
-import sys
 import statistics
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ import torch
 
 import action_decoder.policy as policy_mod
 from action_decoder import ActionDecoderPolicy, DecoderConfig
+from action_decoder.cli import check_device
 from action_decoder.flows import losses
 from action_decoder.train import weight_average
 
@@ -299,19 +299,6 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def check_device(device: str) -> None:
-    """One line for a device this machine cannot train on."""
-    if device == "cpu":
-        return
-    if not re.fullmatch(r"cuda(:\d+)?", device):
-        raise ValueError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
-    if not torch.cuda.is_available():
-        raise ValueError(f"--device: got {device!r}, but torch {torch.__version__} sees no CUDA device here")
-    index = int(device.partition(":")[2] or 0)
-    if index >= torch.cuda.device_count():
-        raise ValueError(f"--device: got {device!r}, but torch sees {torch.cuda.device_count()} CUDA device(s)")
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks multimodal", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -327,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dudt", choices=["jvp", "finite_difference"], default=None,
                    help="MeanFlow's du/dt in training (DecoderConfig.meanflow_dudt; default: the config's)")
     p.add_argument("--device", default="cpu",
-                   help="where the policies train and sample: cpu (default, one thread) or cuda[:N]")
+                   help="where the policies train and sample: cpu (default, one thread), cuda[:N] or auto")
     p.add_argument("--log-every", type=int, default=0, metavar="N",
                    help="print the training step and loss to stderr every N steps (default: never)")
     p.add_argument("--out", default=None, help="directory for the JSON (default docs/benchmarks/multimodal.json "
@@ -335,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     check_device(a.device)
+    if a.device == "auto":
+        a.device = "cuda" if torch.cuda.is_available() else "cpu"
     b = Budget()
     if a.quick:
         b = Budget(steps=300, eval_states=128, episodes=20, demos=50, latency_reps=10)
@@ -366,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     meta = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
             "torch": torch.__version__, "threads": torch.get_num_threads(), "seed": a.seed,
-            "device": torch.cuda.get_device_name(a.device) if a.device.startswith("cuda") else "cpu",
+            "device": torch.cuda.get_device_name(a.device) if a.device.startswith("cuda") else a.device,
             "budget": b.__dict__, "argv": argv}
     name = "multimodal" if full else "multimodal_run"                 # a partial run never replaces the table's
     (out / f"{name}.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
