@@ -12,8 +12,9 @@ flow-matching BC policy succeeds in 15–65 % of 50 evaluation episodes (seed 0)
 defaults were developed on (`TUNED_ON`) belong to the development half; the others are split by a
 hash of their name (`half`), fixed before any run. Each (task, decoder) run lives in its own
 directory under --runs (suffixed `_sac` for SAC); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
-steps are skipped and an interrupted fine-tuning resumes, so the grid can be stopped and
-continued. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json (which
+steps are skipped, an interrupted fine-tuning resumes, and a run whose row is already in --results
+(same task, decoder, algorithm, recipe and seed) is not run again, so the grid can be stopped and
+continued, on another machine too. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json (which
 keeps rows whose run directories are gone), and the table and a plot of the learning curves are
 written from it; text below the table's notes marker is kept.
 """
@@ -200,6 +201,20 @@ def _key(r: dict) -> tuple:
     return r["task"], r["decoder"], r["algo"], r.get("recipe", "defaults"), r.get("seed", 0)
 
 
+def planned_recipe(finetune_args: list[str]) -> str:
+    """The recipe (`recipe`) of the runs these extra `finetune` options start."""
+    import tyro
+    from action_decoder.rl.finetune import FinetuneConfig
+
+    cfg = tyro.cli(FinetuneConfig, args=["--checkpoint", "-", *finetune_args])
+    return recipe(dataclasses.asdict(cfg))
+
+
+def recorded(results: Path) -> set[tuple]:
+    """Keys (`_key`) of the runs whose rows `results` already holds."""
+    return {_key(r) for r in json.loads(results.read_text())} if results.is_file() else set()
+
+
 def merge(results: Path, rows: list[dict]) -> list[dict]:
     """Rows kept in `results` from earlier runs, replaced by this run directory's rows for the same
     (task, decoder, algo, recipe, seed); written back so that tables and plots can be rebuilt from every run kept."""
@@ -343,6 +358,11 @@ def main(argv=None) -> None:
         return
     grid = [] if args.report_only else [(f"metaworld/{t}", d, s) for t in resolve_task_spec(args.tasks, task_set)
                                         for d in args.decoders for s in args.seeds]
+    if grid:
+        done, how = recorded(Path(args.results)), planned_recipe(args.finetune_args)
+        for task, dec, seed in [job for job in grid if (job[0].split("/")[-1], job[1], args.algo, how, job[2]) in done]:
+            print(f"{task} {dec} seed {seed}: recorded in {args.results}; delete its row to run it again")
+            grid.remove((task, dec, seed))
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()

@@ -402,3 +402,26 @@ def test_bc_table_of_a_meanflow_target_shows_the_tasks_it_was_measured_on(tmp_pa
     text = table.read_text()
     assert "| push-v3 | 90 (1) | 75 (1) |" in text and "hammer-v3" not in text
     assert 'MeanFlow trained with `meanflow_target="split"`' in text
+
+
+def test_rl_grid_skips_runs_already_recorded_in_the_results(monkeypatch, tmp_path, capsys):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    assert rl_finetune.planned_recipe([]) == "defaults"
+    assert rl_finetune.planned_recipe(["--lr-schedule", "adaptive"]) == "lr_schedule=adaptive"
+    results = tmp_path / "rl.json"
+    row = {"task": "reach-v3", "decoder": "flow_matching", "algo": "ppo", "recipe": "defaults", "seed": 0,
+           "bc": 0.2, "bc_steps": 10, "bc_at_ft_k": 0.2, "ft_k": 10, "ft_sde": 0.5, "ft_ode": 0.4, "cpu_min": 45.0,
+           "env_steps": 1000, "measured": "2026-11-23", "curve": []}
+    results.write_text(json.dumps([row]))
+    ran = []
+    monkeypatch.setattr(rl_finetune, "run_one", lambda task, dec, seed, args: ran.append((task, dec, seed)))
+    common = ["--tasks", "metaworld/reach", "--results", str(results), "--runs", str(tmp_path / "runs"),
+              "--table", str(tmp_path / "t.md"), "--plot", str(tmp_path / "t.png")]
+    rl_finetune.main(common)
+    assert ran == [("metaworld/reach-v3", "mean_flow", 0)]           # flow matching's row is recorded
+    assert "metaworld/reach-v3 flow_matching seed 0: recorded in" in capsys.readouterr().out
+    ran.clear()
+    rl_finetune.main([*common, "--", "--lr-schedule", "adaptive"])   # another recipe: both run
+    assert ran == [("metaworld/reach-v3", "flow_matching", 0), ("metaworld/reach-v3", "mean_flow", 0)]
