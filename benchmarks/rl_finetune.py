@@ -14,9 +14,9 @@ hash of their name (`half`), fixed before any run. Each (task, decoder) run live
 directory under --runs (suffixed `_sac` for SAC); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
 steps are skipped, an interrupted fine-tuning resumes, and a run whose row is already in --results
 (same task, decoder, algorithm, recipe and seed) is not run again, so the grid can be stopped and
-continued, on another machine too. The rows of finished runs are merged into docs/benchmarks/rl_finetune.json (which
-keeps rows whose run directories are gone), and the table and a plot of the learning curves are
-written from it; text below the table's notes marker is kept.
+continued, on another machine too. The rows of finished runs are merged into
+docs/benchmarks/rl_finetune.json (which keeps rows whose run directories are gone), and the table
+and a plot of the learning curves are written from it; text below the table's notes marker is kept.
 """
 
 from __future__ import annotations
