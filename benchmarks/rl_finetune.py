@@ -360,9 +360,10 @@ def main(argv=None) -> None:
                                         for d in args.decoders for s in args.seeds]
     if grid:
         done, how = recorded(Path(args.results)), planned_recipe(args.finetune_args)
-        for task, dec, seed in [job for job in grid if (job[0].split("/")[-1], job[1], args.algo, how, job[2]) in done]:
+        skipped = [(t, d, s) for t, d, s in grid if (t.split("/")[-1], d, args.algo, how, s) in done]
+        for task, dec, seed in skipped:
             print(f"{task} {dec} seed {seed}: recorded in {args.results}; delete its row to run it again")
-            grid.remove((task, dec, seed))
+        grid = [job for job in grid if job not in skipped]
     with ThreadPoolExecutor(args.jobs) as pool:
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()
