@@ -157,6 +157,10 @@ def recipe(config: dict) -> str:
     from action_decoder.rl.finetune import FinetuneConfig
 
     base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
+    config = dict(config)
+    warmup = config.pop("critic_warmup_iters", None)      # acts only with the critic (group size 1); None = 1
+    if config.get("group_size", base["group_size"]) == 1 and warmup not in (None, 1):
+        config["critic_warmup_iters"] = warmup
     changed = [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                for k, v in sorted(config.items()) if k in base and v != base[k]]
     return ", ".join(changed) or "defaults"

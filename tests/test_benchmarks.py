@@ -272,6 +272,12 @@ def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
     assert rl_finetune.recipe({**run_only, "lr": 1e-4, "lr_schedule": "fixed"}) == "defaults"     # set to the default
     assert rl_finetune.recipe({"lr_schedule": "adaptive", "kl_coef": 0.01, "lr": 1e-4}) == \
         "kl_coef=0.01, lr_schedule=adaptive"
+    # the critic's warm-up is part of a recipe only where the critic acts (group size 1); None means 1
+    for warmup in (None, 1, 5):
+        assert rl_finetune.recipe({"critic_warmup_iters": warmup, "group_size": 4}) == "defaults"
+    assert rl_finetune.recipe({"critic_warmup_iters": None, "group_size": 1}) == \
+        rl_finetune.recipe({"critic_warmup_iters": 1, "group_size": 1}) == "group_size=1"
+    assert rl_finetune.recipe({"critic_warmup_iters": 3, "group_size": 1}) == "critic_warmup_iters=3, group_size=1"
 
 
 def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):

@@ -152,7 +152,7 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     args = ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30", "--num-envs", "2",
             "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "1",
             "--minibatch-size", "4", "--group-size", "2",
-            "--critic-warmup-iters", "0", "--checkpoint-every", "1", "--kl-coef", "0.01"]
+            "--checkpoint-every", "1", "--kl-coef", "0.01"]
     assert main(args) == 0
     log = json.loads((out / "finetune_log.json").read_text())
     assert log["history"][-1]["env_steps"] >= 30 and "ratio_min" in log["history"][-1]
@@ -189,6 +189,14 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--trained-steps",
                  "11"]) == 2
     assert "--trained-steps" in capsys.readouterr().err
+    # the critic's warm-up acts only with the critic: refused with group advantages instead of ignored
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--critic-warmup-iters",
+                 "3"]) == 2
+    err = capsys.readouterr().err
+    assert "--critic-warmup-iters: only with the critic (--group-size 1)" in err and "got 3" in err
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--group-size", "1",
+                 "--critic-warmup-iters", "-1"]) == 2
+    assert "--critic-warmup-iters: expected >= 0, got -1" in capsys.readouterr().err
 
 
 def test_shaping_is_potential_based_and_telescopes():
@@ -259,6 +267,13 @@ def test_ppo_on_chains_learns_a_contextual_bandit():
         stats = ppo_update(policy, critic, opt, lambda st: {"state": st}, data, cfg, gen)
         assert stats["ratio_dev_before_update"] <= cfg.ratio_tol
     assert means[-1] > means[0] + 0.12 and rewards[-1] > rewards[0] + 0.2, (means, rewards)
+    # the critic's warm-up (update_policy=False): the value head moves, the velocity network and σ do not
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    head = [p.clone() for p in critic.parameters()]
+    stats = ppo_update(policy, critic, opt, lambda st: {"state": st}, data, cfg, gen, update_policy=False)
+    assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())
+    assert any(not torch.equal(a, b) for a, b in zip(head, critic.parameters())) and "v_loss" in stats
+    assert "approx_kl" not in stats
 
 
 def test_rollout_runs_past_success_for_the_dense_reward():

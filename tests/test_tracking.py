@@ -114,7 +114,7 @@ def test_finetune_writes_its_rl_scalars_per_iteration(tmp_path):
     _bc().save_pretrained(ckpt)
     assert main(["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "30",
                  "--num-envs", "2", "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2",
-                 "--eval-episodes", "1", "--minibatch-size", "4", "--group-size", "2", "--critic-warmup-iters", "0",
+                 "--eval-episodes", "1", "--minibatch-size", "4", "--group-size", "2",
                  "--checkpoint-every", "1"]) == 0
     log = json.loads((out / "finetune_log.json").read_text())
     history = log["history"]

@@ -116,8 +116,10 @@ class FinetuneConfig:
     vf_coef: float = 0.5
     kl_coef: float = 0.0
     """Weight of KL(π_θ ‖ π_BC) on the chains (0: off; the KL is still logged)."""
-    critic_warmup_iters: int = 1
-    """PPO: first iterations train only the value head."""
+    critic_warmup_iters: Optional[int] = None
+    """PPO with the critic (`--group-size 1`): first iterations train only the value head (default 1).
+    Group advantages do not use the value head, so with `--group-size` above 1 the policy updates
+    from the first iteration and this option is refused."""
     ratio_tol: float = 1e-4
     """PPO: tolerated |ratio − 1| before the first update of an iteration."""
     alpha: float = 0.01
@@ -153,12 +155,18 @@ def _check(cfg: FinetuneConfig) -> None:
     for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip"):
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
-    for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "critic_warmup_iters",
+    for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every",
                  "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     if cfg.max_episode_steps > 500:
         raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
+    if cfg.critic_warmup_iters is not None:
+        if cfg.critic_warmup_iters < 0:
+            raise ValueError(f"--critic-warmup-iters: expected >= 0, got {cfg.critic_warmup_iters}")
+        if cfg.group_size > 1:
+            raise ValueError(f"--critic-warmup-iters: only with the critic (--group-size 1); group advantages "
+                             f"(--group-size {cfg.group_size}) do not use the value head, got {cfg.critic_warmup_iters}")
     if cfg.num_envs % cfg.group_size:
         raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, got {cfg.group_size}")
     if not 1 <= cfg.trained_steps <= cfg.sde_steps:
@@ -339,6 +347,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                                               time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
 
     layouts = cfg.num_envs // cfg.group_size          # distinct training layouts per iteration
+    critic_warmup = 1 if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
     while not out_of_budget():
         seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * layouts + i // cfg.group_size) % TRAIN_LAYOUT_SPAN
                  for i in range(cfg.num_envs)]
@@ -365,7 +374,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
                     "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret}
             stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                               update_policy=cfg.group_size > 1 or iteration >= cfg.critic_warmup_iters)
+                               update_policy=cfg.group_size > 1 or iteration >= critic_warmup)
         else:
             buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
                         "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.terminal})
