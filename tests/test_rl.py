@@ -197,6 +197,9 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--group-size", "1",
                  "--critic-warmup-iters", "-1"]) == 2
     assert "--critic-warmup-iters: expected >= 0, got -1" in capsys.readouterr().err
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--lr-warmup-updates", "10",
+                 "--lr-schedule", "adaptive"]) == 2
+    assert "--lr-warmup-updates: only with --algo ppo and --lr-schedule fixed, got 10" in capsys.readouterr().err
 
 
 def test_shaping_is_potential_based_and_telescopes():
@@ -463,3 +466,30 @@ def test_adaptive_lr_is_set_by_the_kl_after_each_update(target_kl, moves):
         assert lr == pytest.approx(1e-4 * 1.5 ** 3)
     else:                  # the second minibatch is past 1.5 × target: one cut, then the early stop
         assert lr == pytest.approx(1e-4 / 1.5) and lrs["adaptive"][3] == 1
+
+
+def test_warmup_lr_rises_linearly_to_lr():
+    assert [ppo.warmup_lr(1e-4, n, 4) for n in range(6)] == pytest.approx([2.5e-5, 5e-5, 7.5e-5, 1e-4, 1e-4, 1e-4])
+    assert ppo.warmup_lr(1e-4, 0, 0) == 1e-4                                            # no warm-up
+
+
+def test_lr_warmup_sizes_the_first_updates_and_resumes_with_the_optimizer():
+    """Adam's first step moves each weight by lr·sign(g) (up to ε): with a warm-up of N updates the
+    first one moves the velocity network by at most lr / N, and the count lives in Adam's state, so
+    a second call (the next iteration, or a resumed run) continues the ramp."""
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(policy)
+    value = ValueNet(S)
+    opt = torch.optim.Adam([{"params": list(policy.model.parameters()), "lr": 1e-3},
+                            {"params": list(value.parameters()), "lr": 1e-3}])
+    cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.0, target_kl=1e9, vf_coef=0.5, grad_clip=1.0, lr=1e-3,
+                          lr_schedule="fixed", lr_warmup_updates=8)
+    before = [p.detach().clone() for p in policy.model.parameters()]
+    stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+    moved = max(float((p.detach() - b).abs().max()) for p, b in zip(policy.model.parameters(), before))
+    assert stats["lr"] == pytest.approx(1e-3 / 8) and moved == pytest.approx(1e-3 / 8, rel=1e-3)
+    for _ in range(8):                                       # one update per call (fresh chains): updates 2 … 9
+        stats = ppo_update(policy, value, opt, lambda s: {"state": s}, _ppo_data(policy), cfg,
+                           torch.Generator().manual_seed(0))
+    assert stats["lr"] == 1e-3 and opt.param_groups[1]["lr"] == 1e-3      # ramp done; the critic's rate untouched

@@ -103,6 +103,13 @@ def adapt_lr(lr: float, approx_kl: float, target_kl: float, lo: float, hi: float
     return min(max(lr, lo), hi)
 
 
+def warmup_lr(lr: float, updates_done: int, warmup_updates: int) -> float:
+    """Learning rate of update number `updates_done` + 1 under a linear warm-up: lr × (n + 1) / N over
+    the first N = `warmup_updates` updates, then lr (N = 0: no warm-up). Adam's first steps move
+    every weight by about lr whatever the gradient's noise (m̂ / √v̂ = ±1 at the first step)."""
+    return lr if warmup_updates <= 0 else lr * min(1.0, (updates_done + 1) / warmup_updates)
+
+
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
                data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
@@ -112,7 +119,9 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     `update_policy=False` trains only the critic (warm-up). With `cfg.lr_schedule == "adaptive"` the
     first parameter group's learning rate (the velocity network's) follows `adapt_lr` after every
     minibatch measured past an update, within [`cfg.lr` / 100, `cfg.lr` × 10]; it lives in the
-    optimizer's state, so it carries over iterations and resumes.
+    optimizer's state, so it carries over iterations and resumes. With `cfg.lr_warmup_updates` = N > 0
+    (fixed schedule) that rate follows `warmup_lr` over the velocity network's first N updates, counted
+    by Adam's own step count, which also resumes.
 
     Only the trained steps are re-scored (each step's density needs only its stored start and
     end states), in micro-batches whose losses are back-propagated at once (`MICROBATCH_ROW_CALLS`):
@@ -193,6 +202,11 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             (cfg.vf_coef * v_loss).backward()
             torch.nn.utils.clip_grad_norm_(policy_params, cfg.grad_clip)
             torch.nn.utils.clip_grad_norm_(critic_params, cfg.grad_clip)
+            if update_policy and getattr(cfg, "lr_warmup_updates", 0) > 0:
+                group = optimizer.param_groups[0]
+                done = max((int(optimizer.state[p]["step"]) for p in group["params"] if "step" in optimizer.state[p]),
+                           default=0)
+                group["lr"] = warmup_lr(cfg.lr, done, cfg.lr_warmup_updates)
             optimizer.step()
         stats["epochs"] = epoch + 1
         if stop:
