@@ -60,7 +60,8 @@ def test_ratio_is_one_on_policy_and_checked(decoder):
             "chain": res.chain, "grid": res.grid, "logp_old": res.step_log_probs, "logp_ref": res.step_log_probs,
             "adv": torch.randn(6, generator=gen), "ret": torch.zeros(6)}
     cfg = SimpleNamespace(trained_steps=2, ppo_epochs=1, minibatch_size=6, logprob_reduce="mean", ratio_tol=1e-4,
-                          clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed")
+                          clip_eps=0.2, kl_coef=0.1, target_kl=1.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed",
+                          lr_warmup_updates=0)
     opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=1e-2)
     stats = ppo_update(policy, value, opt, lambda s: {"state": s}, data, cfg, gen)
     assert stats["ratio_dev_before_update"] < 1e-5
@@ -358,7 +359,8 @@ def test_ppo_update_rescores_in_micro_batches(monkeypatch):
     base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
     data = _ppo_data(base)
     cfg = SimpleNamespace(trained_steps=3, ppo_epochs=2, minibatch_size=12, logprob_reduce="sum", ratio_tol=1e-4,
-                          clip_eps=0.2, kl_coef=0.1, target_kl=100.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed")
+                          clip_eps=0.2, kl_coef=0.1, target_kl=100.0, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed",
+                          lr_warmup_updates=0)
     results = []
     for budget in (10**6, 6):                                    # one micro-batch; then 6 // 3 = 2 rows each
         monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", budget)
@@ -385,7 +387,7 @@ def test_approx_kl_stays_finite_where_a_step_density_collapses():
     data["logp_old"][3, 4] += 200.0
     cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce="sum",
                           ratio_tol=float("inf"), clip_eps=0.2, kl_coef=0.0, target_kl=100.0, vf_coef=0.5,
-                          grad_clip=1.0, lr_schedule="fixed")
+                          grad_clip=1.0, lr_schedule="fixed", lr_warmup_updates=0)
     opt = torch.optim.SGD(policy.parameters(), lr=0.0)
     stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
     assert stats["approx_kl"] == pytest.approx(199.0 / (12 * 5), rel=1e-3)
@@ -456,7 +458,7 @@ def test_adaptive_lr_is_set_by_the_kl_after_each_update(target_kl, moves):
                                 {"params": list(v.parameters()), "lr": 1e-3}])
         cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=3, logprob_reduce="sum",
                               ratio_tol=1e-4, clip_eps=0.2, kl_coef=0.0, target_kl=target_kl, vf_coef=0.5,
-                              grad_clip=1.0, lr=1e-4, lr_schedule=schedule)
+                              grad_clip=1.0, lr=1e-4, lr_schedule=schedule, lr_warmup_updates=0)
         stats = ppo_update(p, v, opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
         lrs[schedule] = (stats["lr"], opt.param_groups[0]["lr"], opt.param_groups[1]["lr"], stats["epochs"])
     assert lrs["fixed"][:3] == (1e-4, 1e-4, 1e-3)

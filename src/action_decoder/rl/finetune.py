@@ -173,7 +173,8 @@ def _check(cfg: FinetuneConfig) -> None:
             raise ValueError(f"--critic-warmup-iters: expected >= 0, got {cfg.critic_warmup_iters}")
         if cfg.group_size > 1:
             raise ValueError(f"--critic-warmup-iters: only with the critic (--group-size 1); group advantages "
-                             f"(--group-size {cfg.group_size}) do not use the value head, got {cfg.critic_warmup_iters}")
+                             f"(--group-size {cfg.group_size}) do not use the value head, "
+                             f"got {cfg.critic_warmup_iters}")
     if cfg.num_envs % cfg.group_size:
         raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, got {cfg.group_size}")
     if not 1 <= cfg.trained_steps <= cfg.sde_steps:

@@ -202,7 +202,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             (cfg.vf_coef * v_loss).backward()
             torch.nn.utils.clip_grad_norm_(policy_params, cfg.grad_clip)
             torch.nn.utils.clip_grad_norm_(critic_params, cfg.grad_clip)
-            if update_policy and getattr(cfg, "lr_warmup_updates", 0) > 0:
+            if update_policy and cfg.lr_warmup_updates > 0:
                 group = optimizer.param_groups[0]
                 done = max((int(optimizer.state[p]["step"]) for p in group["params"] if "step" in optimizer.state[p]),
                            default=0)
