@@ -166,6 +166,30 @@ def recipe(config: dict) -> str:
     return ", ".join(changed) or "defaults"
 
 
+EARLY_ITERS = 20
+"""The early phase of a run, where the first Adam steps are largest: its first 20 iterations (128k env steps
+at 32 envs × 200 steps)."""
+
+
+def early_phase(history: list[dict], minibatch_size: int) -> dict:
+    """How far and how fast a PPO run moved over its first `EARLY_ITERS` iterations: the approximate KL of
+    its first update (logged as `approx_kl_first_update`; in logs without it, twice iteration 1's mean
+    `approx_kl` when that iteration stopped after its first update with two minibatches, the first
+    measured before any update), the iterations among them that stopped after one update, KL to BC at
+    iterations 10 and 20, and training success over iterations 1–10 and 11–20."""
+    first, head = history[0], history[:EARLY_ITERS]
+    kl = first.get("approx_kl_first_update")
+    if kl is None and first.get("epochs") == 1 and minibatch_size < first.get("decisions", 0) <= 2 * minibatch_size:
+        kl = 2 * first["approx_kl"]
+    at = {h["iteration"]: h for h in head}
+    mean = lambda hs: round(sum(h["success"] for h in hs) / len(hs), 3) if hs else None   # noqa: E731
+    return {"first_update_kl": None if kl is None else round(kl, 3),
+            "one_update_iters": sum(h.get("epochs") == 1 for h in head),
+            "kl_bc_it10": round(at[10]["kl_bc"], 2) if 10 in at else None,
+            "kl_bc_it20": round(at[20]["kl_bc"], 2) if 20 in at else None,
+            "train_success_it1_10": mean(head[:10]), "train_success_it11_20": mean(head[10:20])}
+
+
 def collect(runs: Path) -> list[dict]:
     """One row per finished fine-tuning under `runs` (each seed its own): success before/after,
     training success at the end of the run, and the evaluation curve."""
@@ -194,6 +218,8 @@ def collect(runs: Path) -> list[dict]:
                          "train_success_last10": round(sum(h["success"] for h in tail) / len(tail), 3),
                          "kl_bc_last": round(last["kl_bc"], 2) if "kl_bc" in last else None,
                          "cpu_min": round(last.get("cpu_s", last["wall_s"]) / 60, 2), "env_steps": last["env_steps"],
+                         "early": early_phase(hist, log["config"].get("minibatch_size", 512))
+                         if log["config"]["algo"] == "ppo" else None,
                          "measured": time.strftime("%Y-%m-%d", time.gmtime((run / f"ft_eval_ode{suffix}.json").stat().st_mtime)),
                          # (CPU minutes, 20-episode SDE success, ODE success) at each evaluation during the run
                          "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e["success_sde"], e["success_ode"]]
@@ -292,12 +318,26 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
                      f"{100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
                      f"{_num(r, 'train_success_last10', 100, '.0f')} | {_num(r, 'kl_bc_last', 1, '.1f')} | "
                      f"{r['cpu_min']:.0f} | {r['env_steps']} | {r['measured']} |")
+    early, early_lines = [r for r in rows if r.get("early")], []
+    if early:
+        early_lines = [f"Early phase, first {EARLY_ITERS} iterations (`early_phase`):", "",
+                  "| half | task | decoder | recipe | seed | KL of the first update | iterations of one update | "
+                  "KL to BC, it. 10 / 20 | training success, it. 1–10 / 11–20 | gain |",
+                  "|---|---|---|---|---:|---:|---:|---|---|---:|"]
+        for r in early:
+            e = r["early"]
+            cell = lambda a, b, f: " / ".join("–" if v is None else format(v, f) for v in (e[a], e[b]))  # noqa: E731
+            early_lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {_changed(r) or 'defaults'} | "
+                         f"{r.get('seed', 0)} | {'–' if e['first_update_kl'] is None else format(e['first_update_kl'], '.2f')} | "
+                         f"{e['one_update_iters']} | {cell('kl_bc_it10', 'kl_bc_it20', '.1f')} | "
+                         f"{cell('train_success_it1_10', 'train_success_it11_20', '.2f')} | {_gain(r):+.0f} |")
     chosen = task_set_text(task_set, args) if task_set else ""
     text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps). "
             "Training success: the fine-tuning's own episodes (SDE, fresh layouts, 200-step cap) over its last "
             "10 iterations.\n\n" + chosen
             + "\n".join(lines) + "\n\n" + "\n".join(summary(rows)) + ("\n\n" if rows else "")
+            + "\n".join(early_lines) + ("\n\n" if early_lines else "")
             + f"Rebuilt by `python -m benchmarks.rl_finetune` from `{args.results}`; the plot `{plot.name}` holds the "
             "learning curves.\n")
     table.parent.mkdir(parents=True, exist_ok=True)

@@ -280,6 +280,28 @@ def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
     assert rl_finetune.recipe({"critic_warmup_iters": 3, "group_size": 1}) == "critic_warmup_iters=3, group_size=1"
 
 
+def test_rl_early_phase_reads_the_first_iterations_of_a_run(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    # 25 iterations: single updates up to iteration 6, KL to BC = iteration / 2, success 0.5 then 0.1
+    hist = [{"iteration": i, "epochs": 1 if i <= 6 else 3, "kl_bc": i / 2, "success": 0.5 if i <= 10 else 0.1,
+             "approx_kl": 0.3, "decisions": 800} for i in range(1, 26)]
+    e = rl_finetune.early_phase(hist, 512)
+    assert e == {"first_update_kl": 0.6, "one_update_iters": 6, "kl_bc_it10": 5.0, "kl_bc_it20": 10.0,
+                 "train_success_it1_10": 0.5, "train_success_it11_20": 0.1}
+    # logged directly where the log has it; not derivable from one minibatch per epoch, nor from a short run
+    assert rl_finetune.early_phase([{**hist[0], "approx_kl_first_update": 0.41}] + hist[1:], 512)["first_update_kl"] == 0.41
+    short = rl_finetune.early_phase(hist[:8], 1024)
+    assert short["first_update_kl"] is None and short["kl_bc_it20"] is None and short["train_success_it11_20"] is None
+    row = {"task": "reach-v3", "decoder": "flow_matching", "algo": "ppo", "bc": 0.2, "bc_steps": 10, "bc_at_ft_k": 0.2,
+           "ft_k": 10, "ft_sde": 0.5, "ft_ode": 0.1, "cpu_min": 45.0, "env_steps": 1000, "measured": "2026-11-26",
+           "curve": [], "early": e}
+    text = rl_finetune.write_report([row], tmp_path / "t.md", tmp_path / "t.png",
+                                    argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
+    assert "| dev | reach-v3 | flow_matching | defaults | 0 | 0.60 | 6 | 5.0 / 10.0 | 0.50 / 0.10 | +30 |" in text
+
+
 def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):
     monkeypatch.syspath_prepend(str(ROOT))
     from benchmarks import rl_finetune

@@ -495,3 +495,26 @@ def test_lr_warmup_sizes_the_first_updates_and_resumes_with_the_optimizer():
         stats = ppo_update(policy, value, opt, lambda s: {"state": s}, _ppo_data(policy), cfg,
                            torch.Generator().manual_seed(0))
     assert stats["lr"] == 1e-3 and opt.param_groups[1]["lr"] == 1e-3      # ramp done; the critic's rate untouched
+
+
+def test_ppo_logs_the_kl_of_the_first_update():
+    """`approx_kl_first_update` is k3 of log(π_θ/π_old) on the stored chains after exactly one update:
+    the same statistic recomputed on a copy of the policy that made only that update."""
+    base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(base)
+    cfg = SimpleNamespace(trained_steps=5, ppo_epochs=2, minibatch_size=12, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.0, target_kl=1e9, vf_coef=0.5, grad_clip=1.0, lr=1e-3,
+                          lr_schedule="fixed", lr_warmup_updates=0)
+    out = {}
+    for epochs in (2, 1):
+        policy, value = copy.deepcopy(base), ValueNet(S)
+        opt = torch.optim.Adam([{"params": list(policy.model.parameters()), "lr": 1e-3},
+                                {"params": list(value.parameters()), "lr": 1e-3}])
+        out[epochs] = ppo_update(policy, value, opt, lambda s: {"state": s}, data, SimpleNamespace(**{**vars(cfg),
+                                 "ppo_epochs": epochs}), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        lp = rescore_chain(policy, {"state": data["states"]}, data["chain"], data["grid"], "sum",
+                           policy.config.n_action_steps)                                    # after one update
+    expected = float(ppo.k3_kl(lp - data["logp_old"]).mean())
+    assert expected > 1e-4 and out[2]["approx_kl_first_update"] == pytest.approx(expected, rel=1e-4)
+    assert "approx_kl_first_update" not in out[1]                # one minibatch, one update: nothing measured after it

@@ -130,7 +130,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     log(π_θ/π_old), i.e. mean(ratio − 1 − log ratio) as in common PPO code. It grows like |log ratio|
     where a step's density collapses; the reverse form, mean(1/ratio − 1 + log ratio), grows like
     1/ratio and overflowed to inf on the clean-chunk head's sharp last step. `kl_bc_update`
-    (only with `kl_coef` > 0) is the KL-to-BC penalty term averaged over the update's minibatches.
+    (only with `kl_coef` > 0) is the KL-to-BC penalty term averaged over the update's minibatches;
+    `approx_kl_first_update` the approximate KL on the minibatch right after the iteration's first update.
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
     trained = trained_slice(K, cfg.trained_steps)
@@ -212,6 +213,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
         if stop:
             break
     stats["lr"] = float(optimizer.param_groups[0]["lr"])
+    if len(logs["approx_kl"]) > 1:      # measured on the minibatch after the iteration's first update
+        stats["approx_kl_first_update"] = logs["approx_kl"][1]
     for k, v in logs.items():
         if v:
             stats[k] = min(v) if k == "ratio_min" else max(v) if k == "ratio_max" else sum(v) / len(v)
