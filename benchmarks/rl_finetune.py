@@ -328,7 +328,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
             e = r["early"]
             cell = lambda a, b, f: " / ".join("–" if v is None else format(v, f) for v in (e[a], e[b]))  # noqa: E731
             early_lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {_changed(r) or 'defaults'} | "
-                         f"{r.get('seed', 0)} | {'–' if e['first_update_kl'] is None else format(e['first_update_kl'], '.2f')} | "
+                         f"{r.get('seed', 0)} | {'–' if e['first_update_kl'] is None else format(e['first_update_kl'], '.2g')} | "
                          f"{e['one_update_iters']} | {cell('kl_bc_it10', 'kl_bc_it20', '.1f')} | "
                          f"{cell('train_success_it1_10', 'train_success_it11_20', '.2f')} | {_gain(r):+.0f} |")
     chosen = task_set_text(task_set, args) if task_set else ""

@@ -299,7 +299,7 @@ def test_rl_early_phase_reads_the_first_iterations_of_a_run(monkeypatch, tmp_pat
            "curve": [], "early": e}
     text = rl_finetune.write_report([row], tmp_path / "t.md", tmp_path / "t.png",
                                     argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
-    assert "| dev | reach-v3 | flow_matching | defaults | 0 | 0.60 | 6 | 5.0 / 10.0 | 0.50 / 0.10 | +30 |" in text
+    assert "| dev | reach-v3 | flow_matching | defaults | 0 | 0.6 | 6 | 5.0 / 10.0 | 0.50 / 0.10 | +30 |" in text
 
 
 def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):
