@@ -321,16 +321,17 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
     early, early_lines = [r for r in rows if r.get("early")], []
     if early:
         early_lines = [f"Early phase, first {EARLY_ITERS} iterations (`early_phase`):", "",
-                  "| half | task | decoder | recipe | seed | KL of the first update | iterations of one update | "
-                  "KL to BC, it. 10 / 20 | training success, it. 1–10 / 11–20 | gain |",
-                  "|---|---|---|---|---:|---:|---:|---|---|---:|"]
+                       "| half | task | decoder | recipe | seed | KL of the first update | iterations of one update | "
+                       "KL to BC, it. 10 / 20 | training success, it. 1–10 / 11–20 | gain |",
+                       "|---|---|---|---|---:|---:|---:|---|---|---:|"]
         for r in early:
             e = r["early"]
-            cell = lambda a, b, f: " / ".join("–" if v is None else format(v, f) for v in (e[a], e[b]))  # noqa: E731
+            cells = [" / ".join("–" if e[k] is None else format(e[k], fmt) for k in keys)
+                     for keys, fmt in ((("first_update_kl",), ".2g"), (("kl_bc_it10", "kl_bc_it20"), ".1f"),
+                                       (("train_success_it1_10", "train_success_it11_20"), ".2f"))]
             early_lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {_changed(r) or 'defaults'} | "
-                         f"{r.get('seed', 0)} | {'–' if e['first_update_kl'] is None else format(e['first_update_kl'], '.2g')} | "
-                         f"{e['one_update_iters']} | {cell('kl_bc_it10', 'kl_bc_it20', '.1f')} | "
-                         f"{cell('train_success_it1_10', 'train_success_it11_20', '.2f')} | {_gain(r):+.0f} |")
+                               f"{r.get('seed', 0)} | {cells[0]} | {e['one_update_iters']} | {cells[1]} | {cells[2]} | "
+                               f"{_gain(r):+.0f} |")
     chosen = task_set_text(task_set, args) if task_set else ""
     text = (f"Success in % on the same {args.episodes} evaluation layouts (seed 0) before and after fine-tuning; "
             f"BC from {args.demos} demonstrations (Action Expert hidden 64, 2 layers, {args.bc_steps} steps). "

@@ -86,8 +86,9 @@ class FinetuneConfig:
     below `target_kl` / 2 (within [lr / 100, lr × 10]); "fixed" keeps `lr`."""
     lr_warmup_updates: int = 0
     """PPO, fixed schedule: the velocity network's learning rate rises linearly from lr / N to lr over
-    its first N updates (0: none). At lr 1e-4 the first update moves the policy 0.4–0.7 nats per
-    credited step from the rollout policy (approximate KL; target 0.05) on Meta-World."""
+    its first N updates (0: none). At lr 1e-4 the first update moves the policy 0.3–0.8 nats per
+    credited step from the rollout policy (approximate KL; target 0.05) on Meta-World; N = 20 takes
+    that to 0.002–0.003 but gained no more on door-lock (docs/benchmarks/rl_finetune_screen.md)."""
     sigma_lr: float = 3e-3
     critic_lr: float = 1e-3
     gamma: float = 0.99
