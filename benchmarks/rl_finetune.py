@@ -31,6 +31,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from types import SimpleNamespace
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
@@ -100,12 +101,24 @@ def _eval(checkpoint: Path, out: Path, sampler: str, args, log: Path, steps: int
               "--seed", "0", "--output", str(out), *(["--steps", str(steps)] if steps else [])], log)
 
 
-def _sde_steps(args) -> int:
-    """K of the fine-tuned policy: `--sde-steps` among the extra options, else finetune's default."""
+def planned_config(finetune_args: list[str]):
+    """The `FinetuneConfig` these extra `finetune` options give (any spelling `finetune` accepts)."""
+    import tyro
     from action_decoder.rl.finetune import FinetuneConfig
 
-    extra = args.finetune_args
-    return int(extra[extra.index("--sde-steps") + 1]) if "--sde-steps" in extra else FinetuneConfig.sde_steps
+    return tyro.cli(FinetuneConfig, args=["--checkpoint", "-", *finetune_args])
+
+
+def ft_dir_name(finetune_args: list[str], seed: int) -> str:
+    """The fine-tuning's directory in a (task, decoder) run: `ft` for the defaults, plus the recipe and σ
+    where they differ (`ft_lr_warmup_updates-20`) and the seed (`_s1`), so that a recipe never resumes another's run."""
+    from action_decoder.rl.finetune import FinetuneConfig
+
+    cfg = planned_config(finetune_args)
+    how = recipe(dataclasses.asdict(cfg))
+    parts = ["ft", *([how.replace(", ", "_").replace("=", "-")] if how != "defaults" else []),
+             *([f"sigma-{cfg.sigma:g}"] if cfg.sigma != FinetuneConfig.sigma else []), *([f"s{seed}"] if seed else [])]
+    return "_".join(parts)
 
 
 def run_dir(task: str, decoder: str, args) -> Path:
@@ -130,11 +143,11 @@ def train_bc(task: str, decoder: str, args) -> Path:
 def run_one(task: str, decoder: str, seed: int, args) -> None:
     run = train_bc(task, decoder, args)
     log, bc = run / "log.txt", run / "bc"
-    suffix = "" if seed == 0 else f"_s{seed}"
-    ft = run / f"ft{suffix}"
+    ft = run / ft_dir_name(args.finetune_args, seed)
+    suffix = ft.name[2:]
     # The fine-tuned policy samples with K = --sde-steps; MeanFlow's BC default is K = 1, so the
-    # BC policy is also measured at that K, and the gain is taken over the better of the two.
-    k = _sde_steps(args)
+    # BC policy is also measured at that K, the sampler and K the gain compares.
+    k = planned_config(args.finetune_args).sde_steps
     if json.loads((run / "bc_eval.json").read_text())["steps"] != k:
         _eval(bc / "final", run / f"bc_eval_k{k}.json", "ode", args, log, steps=k)
     if not (ft / "final" / "model.safetensors").is_file():
@@ -147,19 +160,26 @@ def run_one(task: str, decoder: str, seed: int, args) -> None:
 
 
 def _gain(r: dict) -> float:
-    """Points gained: the better fine-tuned sampler over the better BC budget."""
-    return 100 * (max(r["ft_sde"], r["ft_ode"]) - max(r["bc"], r["bc_at_ft_k"]))
+    """Points gained: the fine-tuned policy's ODE success over the BC policy's at the fine-tuning's K, one
+    sampler and one K fixed in advance, so that only the weights differ (a better-of-two on either side
+    would add the noise of a maximum)."""
+    return round(100 * (r["ft_ode"] - r["bc_at_ft_k"]), 6) + 0.0        # + 0.0: no "-0" for equal rates
 
 
 def recipe(config: dict) -> str:
     """The `finetune` options a run set away from `FinetuneConfig`'s defaults ("k=v, …"), or
     "defaults"; options a run's config does not record had their default."""
-    from action_decoder.rl.finetune import FinetuneConfig
+    from action_decoder.rl.finetune import FinetuneConfig, episodes_per_layout
 
     base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
     config = dict(config)
+    # episodes per layout: None is the algorithm's default (4 with PPO), which logs may also spell out
+    group = episodes_per_layout(SimpleNamespace(group_size=config.pop("group_size", None),
+                                                algo=config.get("algo", "ppo")))
+    if group != episodes_per_layout(SimpleNamespace(group_size=None, algo=config.get("algo", "ppo"))):
+        config["group_size"] = group
     warmup = config.pop("critic_warmup_iters", None)      # acts only with the critic (group size 1); None = 1
-    if config.get("group_size", base["group_size"]) == 1 and warmup not in (None, 1):
+    if group == 1 and warmup not in (None, 1):
         config["critic_warmup_iters"] = warmup
     changed = [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                for k, v in sorted(config.items()) if k in base and v != base[k]]
@@ -171,6 +191,16 @@ EARLY_ITERS = 20
 at 32 envs × 200 steps)."""
 
 
+def _updates(h: dict, minibatch_size: int) -> int | None:
+    """Policy updates an iteration took: logged as `updates`; in logs without it, one where the iteration
+    stopped in its first epoch with two minibatches (the first measured before any update, the second
+    after it), else unknown (None)."""
+    if "updates" in h:
+        return h["updates"]
+    two = minibatch_size < h.get("decisions", 0) <= 2 * minibatch_size
+    return 1 if two and h.get("epochs") == 1 else None
+
+
 def early_phase(history: list[dict], minibatch_size: int) -> dict:
     """How far and how fast a PPO run moved over its first `EARLY_ITERS` iterations: the approximate KL of
     its first update (logged as `approx_kl_first_update`; in logs without it, twice iteration 1's mean
@@ -179,12 +209,12 @@ def early_phase(history: list[dict], minibatch_size: int) -> dict:
     iterations 10 and 20, and training success over iterations 1–10 and 11–20."""
     first, head = history[0], history[:EARLY_ITERS]
     kl = first.get("approx_kl_first_update")
-    if kl is None and first.get("epochs") == 1 and minibatch_size < first.get("decisions", 0) <= 2 * minibatch_size:
+    if kl is None and _updates(first, minibatch_size) == 1 and "updates" not in first:
         kl = 2 * first["approx_kl"]
     at = {h["iteration"]: h for h in head}
     mean = lambda hs: round(sum(h["success"] for h in hs) / len(hs), 3) if hs else None   # noqa: E731
     return {"first_update_kl": None if kl is None else round(kl, 3),
-            "one_update_iters": sum(h.get("epochs") == 1 for h in head),
+            "one_update_iters": sum(_updates(h, minibatch_size) == 1 for h in head),
             "kl_bc_it10": round(at[10]["kl_bc"], 2) if 10 in at else None,
             "kl_bc_it20": round(at[20]["kl_bc"], 2) if 20 in at else None,
             "train_success_it1_10": mean(head[:10]), "train_success_it11_20": mean(head[10:20])}
@@ -233,11 +263,7 @@ def _key(r: dict) -> tuple:
 
 def planned_recipe(finetune_args: list[str]) -> str:
     """The recipe (`recipe`) of the runs these extra `finetune` options start."""
-    import tyro
-    from action_decoder.rl.finetune import FinetuneConfig
-
-    cfg = tyro.cli(FinetuneConfig, args=["--checkpoint", "-", *finetune_args])
-    return recipe(dataclasses.asdict(cfg))
+    return recipe(dataclasses.asdict(planned_config(finetune_args)))
 
 
 def recorded(results: Path) -> set[tuple]:
@@ -309,7 +335,7 @@ def task_set_text(task_set: dict, args) -> str:
 
 def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict | None = None) -> str:
     lines = ["| half | task | decoder | algo, σ scale, options other than the defaults | seed | BC (ODE, default K) | BC (ODE, fine-tuning's K) | fine-tuned (SDE) | "
-             "fine-tuned (ODE) | gain (best over best) | training success, last 10 it. | KL to BC | CPU min | "
+             "fine-tuned (ODE) | gain (ODE, fine-tuning's K) | training success, last 10 it. | KL to BC | CPU min | "
              "env steps | measured |",
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
@@ -410,6 +436,9 @@ def main(argv=None) -> None:
             print(f"{task} {dec} seed {seed}: recorded in {args.results}; delete its row to run it again")
         grid = [job for job in grid if job not in skipped]
     with ThreadPoolExecutor(args.jobs) as pool:
+        # every BC policy first: the seeds of one (task, decoder) share it, and two jobs must not train it at once
+        for fut in [pool.submit(train_bc, t, d, args) for t, d in dict.fromkeys((t, d) for t, d, _ in grid)]:
+            fut.result()
         for fut in [pool.submit(run_one, *job, args) for job in grid]:
             fut.result()
     rows = merge(Path(args.results), collect(Path(args.runs))) if Path(args.runs).is_dir() else \

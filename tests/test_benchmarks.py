@@ -204,7 +204,7 @@ def test_bc_results_persist_across_invocations_and_the_table_keeps_one_recipe(mo
     assert md.read_text().endswith(metaworld_bc.NOTES + "\nWhat the table says.\n")
 
 
-def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tmp_path):
+def test_rl_table_measures_the_gain_with_one_sampler_at_the_fine_tunings_k(monkeypatch, tmp_path):
     monkeypatch.syspath_prepend(str(ROOT))
     from benchmarks import rl_finetune
 
@@ -225,7 +225,8 @@ def test_rl_table_measures_the_gain_against_the_better_bc_budget(monkeypatch, tm
     rows = rl_finetune.collect(tmp_path / "runs")
     args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json")
     text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
-    assert "| mean_flow | ppo, a = 0.25 | 0 | 30 (K=1) | 40 (K=10) | 70 | 60 | +30 | 75 | 2.5 |" in text      # 70 − max(30, 40); training success
+    # the ODE at K = 10 on both sides: 60 − 40, whatever the SDE or BC's own K gave; training success 75
+    assert "| mean_flow | ppo, a = 0.25 | 0 | 30 (K=1) | 40 (K=10) | 70 | 60 | +20 | 75 | 2.5 |" in text
     assert rows[0]["curve"] == [[0.92, 0.5, 0.5]]                   # 55 CPU-s
     md = tmp_path / "t.md"
     md.write_text(md.read_text() + "What the table says.\n")
@@ -249,9 +250,9 @@ def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path)
     assert json.loads(results.read_text()) == merged
     text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
                                     argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
-    assert "| dev | push-v3 | flow_matching | ppo | 0 | 20 (K=10) | 20 (K=10) | 30 | 10 | +10 | – | – | 45 | 1000 | " \
+    assert "| dev | push-v3 | flow_matching | ppo | 0 | 20 (K=10) | 20 (K=10) | 30 | 10 | -10 | – | – | 45 | 1000 | " \
         "2026-11-23 |" in text                                         # a row from before the training-success column
-    assert "- dev half, flow_matching (ppo): mean gain +40.0 points over 2 task(s) (seed 0)" in text
+    assert "- dev half, flow_matching (ppo): mean gain -10.0 points over 2 task(s) (seed 0)" in text
     assert not (tmp_path / "t.png").exists()                            # no curves kept: no plot
     changed = dict(row("reach-v3", 0.7), recipe="lr_schedule=adaptive", sigma=0.25)   # one option changed
     merged = rl_finetune.merge(results, [changed])
@@ -259,8 +260,8 @@ def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path)
     text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
                                     argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
     assert "| dev | reach-v3 | flow_matching | ppo, a = 0.25, lr_schedule=adaptive | 0 |" in text
-    assert "- dev half, flow_matching (ppo, a = 0.25, lr_schedule=adaptive): mean gain +50.0 points over 1 task(s)" in text
-    assert "- dev half, flow_matching (ppo): mean gain +40.0 points over 2 task(s) (seed 0)" in text
+    assert "- dev half, flow_matching (ppo, a = 0.25, lr_schedule=adaptive): mean gain -10.0 points over 1 task(s)" in text
+    assert "- dev half, flow_matching (ppo): mean gain -10.0 points over 2 task(s) (seed 0)" in text
 
 
 def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
@@ -299,7 +300,10 @@ def test_rl_early_phase_reads_the_first_iterations_of_a_run(monkeypatch, tmp_pat
            "curve": [], "early": e}
     text = rl_finetune.write_report([row], tmp_path / "t.md", tmp_path / "t.png",
                                     argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
-    assert "| dev | reach-v3 | flow_matching | defaults | 0 | 0.6 | 6 | 5.0 / 10.0 | 0.50 / 0.10 | +30 |" in text
+    assert "| dev | reach-v3 | flow_matching | defaults | 0 | 0.6 | 6 | 5.0 / 10.0 | 0.50 / 0.10 | -10 |" in text
+    # logs with the update count: it decides, whatever the epochs and minibatches
+    counted = [{**h, "updates": 1 if h["iteration"] in (2, 3) else 2, "epochs": 2} for h in hist]
+    assert rl_finetune.early_phase(counted, 1024)["one_update_iters"] == 2
 
 
 def test_rl_task_set_comes_from_the_band_and_a_fixed_split(monkeypatch, tmp_path):
@@ -372,8 +376,8 @@ def test_rl_rows_keep_each_fine_tuning_seed_and_report_their_spread(monkeypatch,
     merged = rl_finetune.merge(tmp_path / "r.json", rows)
     assert len(merged) == 2                                  # seeds are kept apart
     lines = rl_finetune.summary(merged)
-    assert lines == ["- dev half, flow_matching (ppo): mean gain +30.0 points over 1 task(s) (seed 0)",
-                     "- noise: reach-v3 flow_matching (ppo) gains over fine-tuning seeds: +30, +10 (range 20 points)"]
+    assert lines == ["- dev half, flow_matching (ppo): mean gain +20.0 points over 1 task(s) (seed 0)",
+                     "- noise: reach-v3 flow_matching (ppo) gains over fine-tuning seeds: +20, +0 (range 20 points)"]
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
@@ -443,8 +447,9 @@ def test_rl_grid_skips_runs_already_recorded_in_the_results(monkeypatch, tmp_pat
            "bc": 0.2, "bc_steps": 10, "bc_at_ft_k": 0.2, "ft_k": 10, "ft_sde": 0.5, "ft_ode": 0.4, "cpu_min": 45.0,
            "env_steps": 1000, "measured": "2026-11-23", "curve": []}
     results.write_text(json.dumps([row]))
-    ran = []
+    ran, bc = [], []
     monkeypatch.setattr(rl_finetune, "run_one", lambda task, dec, seed, args: ran.append((task, dec, seed)))
+    monkeypatch.setattr(rl_finetune, "train_bc", lambda task, dec, args: bc.append((task, dec)))
     common = ["--tasks", "metaworld/reach", "--results", str(results), "--runs", str(tmp_path / "runs"),
               "--table", str(tmp_path / "t.md"), "--plot", str(tmp_path / "t.png")]
     rl_finetune.main(common)
@@ -453,3 +458,24 @@ def test_rl_grid_skips_runs_already_recorded_in_the_results(monkeypatch, tmp_pat
     ran.clear()
     rl_finetune.main([*common, "--", "--lr-schedule", "adaptive"])   # another recipe: both run
     assert ran == [("metaworld/reach-v3", "flow_matching", 0), ("metaworld/reach-v3", "mean_flow", 0)]
+    # two seeds, two jobs: each BC policy is trained once, before any fine-tuning starts
+    events = []
+    monkeypatch.setattr(rl_finetune, "run_one", lambda task, dec, seed, args: events.append(("ft", dec, seed)))
+    monkeypatch.setattr(rl_finetune, "train_bc", lambda task, dec, args: events.append(("bc", dec)))
+    rl_finetune.main([*common, "--seeds", "0", "1", "--jobs", "2", "--", "--lr-schedule", "adaptive"])
+    assert sorted(events[:2]) == [("bc", "flow_matching"), ("bc", "mean_flow")] and len(events) == 6
+    assert all(e[0] == "ft" for e in events[2:])
+
+
+def test_rl_fine_tuning_directory_and_k_follow_the_options(monkeypatch):
+    """A recipe gets its own fine-tuning directory, so it never resumes another's run; K is read as
+    `finetune` reads it, in either spelling."""
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    assert rl_finetune.ft_dir_name([], 0) == "ft" and rl_finetune.ft_dir_name([], 1) == "ft_s1"
+    assert rl_finetune.ft_dir_name(["--max-cpu-minutes", "10", "--eval-every", "5"], 0) == "ft"   # budget, logging
+    assert rl_finetune.ft_dir_name(["--lr-warmup-updates", "20"], 2) == "ft_lr_warmup_updates-20_s2"
+    assert rl_finetune.ft_dir_name(["--sigma", "0.5"], 0) == "ft_sigma-0.5"
+    assert rl_finetune.planned_config(["--sde-steps=5"]).sde_steps == 5
+    assert rl_finetune.planned_config(["--sde-steps", "5"]).sde_steps == 5

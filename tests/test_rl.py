@@ -165,6 +165,9 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     assert (out / "finetune.png").is_file()
     assert main(args) == 2                                  # refuses to overwrite a run
     assert "already holds a fine-tuning run" in capsys.readouterr().err
+    assert main([*args, "--resume", "--lr", "3e-4"]) == 2    # another recipe does not continue this run
+    err = capsys.readouterr().err
+    assert "--resume: " in err and "started with lr=0.0001; this call sets lr=0.0003" in err
     assert main([*args[:5], "--env-steps", "54", *args[7:], "--resume"]) == 0
     log2 = json.loads((out / "finetune_log.json").read_text())
     assert log2["history"][: len(log["history"])] == log["history"] and len(log2["history"]) > len(log["history"])
@@ -174,7 +177,9 @@ def test_finetune_cli_end_to_end_resume_and_eval(tmp_path, capsys):
     assert cfg["flow_sde_use"] and cfg["flow_sde_learn_sigma"]
     assert cfg["flow_sde_mode"] == FinetuneConfig.sigma_schedule
     # SAC path, one short run, stopped by the CPU budget after its first iteration
-    assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *args[5:], "--sac-batch-size", "4",
+    at = args.index("--group-size")
+    no_group = args[5:at] + args[at + 2:]
+    assert main([*args[:4], str(tmp_path / "sac"), "--algo", "sac", *no_group, "--sac-batch-size", "4",
                  "--env-steps", "100000", "--max-cpu-minutes", "1e-4"]) == 0
     sac = json.loads((tmp_path / "sac" / "finetune_log.json").read_text())
     assert len(sac["history"]) == 1 and sac["history"][0]["cpu_s"] > 0
@@ -194,13 +199,21 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--critic-warmup-iters",
                  "3"]) == 2
     err = capsys.readouterr().err
-    assert "--critic-warmup-iters: only with the critic (--group-size 1)" in err and "got 3" in err
+    assert "--critic-warmup-iters: only with PPO's critic (--group-size 1)" in err and "got 3" in err
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--group-size", "1",
                  "--critic-warmup-iters", "-1"]) == 2
     assert "--critic-warmup-iters: expected >= 0, got -1" in capsys.readouterr().err
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--lr-warmup-updates", "10",
                  "--lr-schedule", "adaptive"]) == 2
     assert "--lr-warmup-updates: only with --algo ppo and --lr-schedule fixed, got 10" in capsys.readouterr().err
+    for bad, expected in ((["--algo", "sac", "--group-size", "4"], "--group-size: only with --algo ppo"),
+                          (["--algo", "sac", "--sac-updates-per-decision", "0"],
+                           "--sac-updates-per-decision: expected a positive number, got 0"),
+                          (["--gamma", "0"], "--gamma: expected a number in (0, 1], got 0"),
+                          (["--gae-lambda", "1.5"], "--gae-lambda: expected a number in [0, 1], got 1.5")):
+        assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), *bad]) == 2
+        err = capsys.readouterr().err
+        assert expected in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_shaping_is_potential_based_and_telescopes():
@@ -518,3 +531,35 @@ def test_ppo_logs_the_kl_of_the_first_update():
     expected = float(ppo.k3_kl(lp - data["logp_old"]).mean())
     assert expected > 1e-4 and out[2]["approx_kl_first_update"] == pytest.approx(expected, rel=1e-4)
     assert "approx_kl_first_update" not in out[1]                # one minibatch, one update: nothing measured after it
+    assert out[2]["updates"] == 2 and out[1]["updates"] == 1
+    # stopped by the KL at epoch 2's first minibatch: two epochs begun, one update taken
+    policy, value = copy.deepcopy(base), ValueNet(S)
+    opt = torch.optim.Adam(list(policy.model.parameters()) + list(value.parameters()), lr=1e-3)
+    stop = ppo_update(policy, value, opt, lambda s: {"state": s}, data, SimpleNamespace(**{**vars(cfg),
+                      "target_kl": 1e-6}), torch.Generator().manual_seed(0))
+    assert stop["epochs"] == 2 and stop["updates"] == 1
+
+
+def test_kl_penalty_gradient_is_that_of_kl_to_the_reference():
+    """On samples of π_θ = N(μ, s²) the penalty's mean gradient is ∇ KL(π_θ ‖ π_ref), π_ref = N(0, 1):
+    (μ, s − 1/s) in closed form; k3's gradient is that of the reverse KL, (μ/s², 1/s − (1 + μ²)/s³)."""
+    mu, s = torch.tensor(0.5, requires_grad=True), torch.tensor(1.5, requires_grad=True)
+    x = (mu + s * torch.randn(400_000, generator=torch.Generator().manual_seed(0))).detach()
+    logp, logp_ref = Normal(mu, s).log_prob(x), Normal(0.0, 1.0).log_prob(x)
+    grad = torch.autograd.grad(ppo.kl_penalty(logp, logp_ref).mean(), (mu, s), retain_graph=True)
+    assert [float(g) for g in grad] == pytest.approx([0.5, 1.5 - 1 / 1.5], abs=0.02)
+    reverse = torch.autograd.grad(ppo.k3_kl(logp_ref - logp).mean(), (mu, s))
+    assert [float(g) for g in reverse] == pytest.approx([0.5 / 1.5 ** 2, 1 / 1.5 - 1.25 / 1.5 ** 3], abs=0.02)
+
+
+def test_training_layouts_of_different_seeds_do_not_overlap():
+    """Each iteration plays num_envs / group layouts, `group` envs each; a seed's layouts are distinct over a
+    run, lie in the training range, and the first 16 seeds share none over 200 iterations of the defaults."""
+    from action_decoder.rl.finetune import TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN, train_layout_seeds
+
+    it = train_layout_seeds(3, 7, 32, 4)
+    assert it == [x for x in dict.fromkeys(it) for _ in range(4)] and len(set(it)) == 8
+    runs = [[x for i in range(200) for x in train_layout_seeds(seed, i, 32, 4)[::4]] for seed in range(16)]
+    assert all(len(set(r)) == 1600 and TRAIN_LAYOUT_BASE <= min(r) and max(r) < TRAIN_LAYOUT_BASE + TRAIN_LAYOUT_SPAN
+               for r in runs)
+    assert len(set().union(*map(set, runs))) == 16 * 1600

@@ -35,6 +35,21 @@ from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_
 TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN = 500_000, 400_000
 """Training layouts: seeds in [500 000, 900 000), apart from demonstrations (low seeds) and
 evaluation (≥ 1 000 000)."""
+LAYOUT_STRIDE = 247_213
+"""Start of seed s's layout stream: s × this, modulo the span. ≈ span / φ (golden ratio) and coprime
+with it, so the first 16 seeds start ≥ 13 769 layouts apart (32 seeds: 8 527), far more than a
+45-CPU-minute run plays (≈ 800)."""
+RUN_OPTIONS = frozenset({"checkpoint", "output_dir", "env_steps", "max_cpu_minutes", "eval_episodes", "eval_every",
+                         "checkpoint_every", "resume", "wandb", "wandb_project"})
+"""Options that set a run's budget, location or logging: `--resume` may change them; the others define the run."""
+
+
+def train_layout_seeds(seed: int, iteration: int, num_envs: int, group_size: int) -> list[int]:
+    """The training layouts (env seeds) of one iteration, one per env: `num_envs / group_size` distinct
+    layouts, each played by `group_size` consecutive envs; consecutive iterations take the next ones."""
+    layouts = num_envs // group_size
+    start = seed * LAYOUT_STRIDE + iteration * layouts
+    return [TRAIN_LAYOUT_BASE + (start + i // group_size) % TRAIN_LAYOUT_SPAN for i in range(num_envs)]
 
 
 @dataclass
@@ -54,12 +69,12 @@ class FinetuneConfig:
     limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
     num_envs: int = 32
     """Lockstep envs; each iteration runs one episode on each."""
-    group_size: int = 4
-    """PPO: episodes per training layout. Above 1, advantages are GRPO-style (each decision's
+    group_size: Optional[int] = None
+    """PPO: episodes per training layout (default 4). Above 1, advantages are GRPO-style (each decision's
     reward-to-go against the other episodes of its layout, see `ppo.group_advantages`) instead of
     the critic's GAE (1). On 3-demo reach the return varies 3–4× between layouts and by a few %
     between episodes of one layout: the critic's error swamped that signal (no learning), the
-    group comparison isolates it."""
+    group comparison isolates it. SAC plays one layout per env and refuses the option."""
     max_episode_steps: int = 200
     """Length cap of the training episodes in env steps (BC successes come within ~50–150 steps;
     longer episodes cost env steps without a new signal). Evaluation always runs 500."""
@@ -152,16 +167,25 @@ class FinetuneConfig:
     wandb_project: str = "action-decoder"
 
 
+def episodes_per_layout(cfg: FinetuneConfig) -> int:
+    """Episodes per training layout: `--group-size`, by default 4 with PPO and 1 with SAC."""
+    return cfg.group_size if cfg.group_size is not None else 4 if cfg.algo == "ppo" else 1
+
+
 def _check(cfg: FinetuneConfig) -> None:
+    if cfg.group_size is not None and cfg.algo != "ppo":
+        raise ValueError(f"--group-size: only with --algo ppo (SAC plays one layout per env), got {cfg.group_size} "
+                         f"with --algo {cfg.algo}")
     for name in ("env_steps", "num_envs", "group_size", "max_episode_steps", "sde_steps", "ppo_epochs", "minibatch_size",
                  "sac_batch_size", "buffer_size", "checkpoint_every"):
-        if getattr(cfg, name) < 1:
+        if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
-    for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip"):
+    for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
+                 "sac_updates_per_decision"):
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "lr_warmup_updates",
-                 "shaping_scale", "max_cpu_minutes", "sac_updates_per_decision"):
+                 "shaping_scale", "max_cpu_minutes"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     if cfg.max_episode_steps > 500:
@@ -172,17 +196,32 @@ def _check(cfg: FinetuneConfig) -> None:
     if cfg.critic_warmup_iters is not None:
         if cfg.critic_warmup_iters < 0:
             raise ValueError(f"--critic-warmup-iters: expected >= 0, got {cfg.critic_warmup_iters}")
-        if cfg.group_size > 1:
-            raise ValueError(f"--critic-warmup-iters: only with the critic (--group-size 1); group advantages "
-                             f"(--group-size {cfg.group_size}) do not use the value head, "
+        if cfg.algo != "ppo" or episodes_per_layout(cfg) > 1:
+            raise ValueError(f"--critic-warmup-iters: only with PPO's critic (--group-size 1); SAC and group advantages "
+                             f"(--group-size {episodes_per_layout(cfg)}) do not use the value head, "
                              f"got {cfg.critic_warmup_iters}")
-    if cfg.num_envs % cfg.group_size:
-        raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, got {cfg.group_size}")
+    if cfg.num_envs % episodes_per_layout(cfg):
+        raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, "
+                         f"got {episodes_per_layout(cfg)}")
     if not 1 <= cfg.trained_steps <= cfg.sde_steps:
         raise ValueError(f"--trained-steps: expected between 1 and --sde-steps={cfg.sde_steps}, got {cfg.trained_steps}")
-    if not (0 < cfg.gamma <= 1 and 0 <= cfg.gae_lambda <= 1 and 0 < cfg.tau <= 1):
-        raise ValueError("--gamma/--gae-lambda/--tau: expected gamma, tau in (0, 1] and gae-lambda in [0, 1]")
+    for name, low_open in (("gamma", True), ("gae_lambda", False), ("tau", True)):
+        v = getattr(cfg, name)
+        if not ((0 < v) if low_open else (0 <= v)) or not v <= 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected a number in {'(0' if low_open else '[0'}, 1], got {v}")
     require_wandb(cfg.wandb)
+
+
+def _check_resumed_config(saved: Optional[dict], cfg: FinetuneConfig, ckpt: Path) -> None:
+    """`--resume` continues the run it finds only with that run's options (`RUN_OPTIONS` aside)."""
+    if saved is None:           # checkpoints written before the config was stored
+        return
+    now = asdict(cfg)
+    changed = sorted(k for k in now if k not in RUN_OPTIONS and k in saved and saved[k] != now[k])
+    if changed:
+        raise ValueError(f"--resume: {ckpt} was started with " + ", ".join(f"{k}={saved[k]!r}" for k in changed)
+                         + "; this call sets " + ", ".join(f"{k}={now[k]!r}" for k in changed)
+                         + ": pass the run's own options or choose another --output-dir")
 
 
 def _resolve_task(cfg: FinetuneConfig, trained: list[str]) -> tuple[str, int]:
@@ -304,6 +343,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
         policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
         st = load_state(ckpt)
+        _check_resumed_config(st.get("config"), cfg, ckpt)
         critic.load_state_dict(st["critic"])
         for k, opt in optimizers.items():
             opt.load_state_dict(st["optimizers"][k])
@@ -355,11 +395,10 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         return env_steps >= cfg.env_steps or (cfg.max_cpu_minutes > 0 and
                                               time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
 
-    layouts = cfg.num_envs // cfg.group_size          # distinct training layouts per iteration
+    group = episodes_per_layout(cfg)
     critic_warmup = 1 if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
     while not out_of_budget():
-        seeds = [TRAIN_LAYOUT_BASE + (cfg.seed * 100_003 + iteration * layouts + i // cfg.group_size) % TRAIN_LAYOUT_SPAN
-                 for i in range(cfg.num_envs)]
+        seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
         policy.eval()
         act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
         ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
@@ -378,12 +417,12 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                 values = critic(norm(ro.states), ro.progress)
                 next_values = critic(norm(ro.next_states), ro.next_progress)
             adv, ret = gae(rewards, values, next_values, ro.terminal, ro.last, cfg.gamma, cfg.gae_lambda)
-            if cfg.group_size > 1:
-                adv = group_advantages(rewards, ro.last, cfg.gamma, cfg.group_size)
+            if group > 1:
+                adv = group_advantages(rewards, ro.last, cfg.gamma, group)
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
                     "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret}
             stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                               update_policy=cfg.group_size > 1 or iteration >= critic_warmup)
+                               update_policy=group > 1 or iteration >= critic_warmup)
         else:
             buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
                         "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.terminal})
@@ -412,6 +451,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             run_eval()
         if iteration % cfg.checkpoint_every == 0 or out_of_budget():
             state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
+                     "config": asdict(cfg),
                      "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
                      "gen": gen.get_state(), "rng": _rng_state()}
             if buffer is not None:

@@ -77,6 +77,13 @@ def k3_kl(log_ratio_ref: Tensor) -> Tensor:
     return torch.expm1(log_ratio_ref) - log_ratio_ref
 
 
+def kl_penalty(logp: Tensor, logp_ref: Tensor) -> Tensor:
+    """Per-sample loss whose gradient, on samples of π_θ, is ∇ KL(π_θ ‖ π_ref): k2 = ½ (log π_θ − log π_ref)².
+    (Back-propagating `k3_kl` instead gives ∇ KL(π_ref ‖ π_θ), the reverse direction; its value, not its
+    gradient, is the estimate of KL(π_θ ‖ π_ref) that is logged.)"""
+    return 0.5 * (logp - logp_ref).square()
+
+
 def trained_slice(steps: int, trained_steps: int) -> slice:
     """The denoising steps an objective credits: the last `trained_steps` of `steps`."""
     return slice(steps - trained_steps, steps)
@@ -129,9 +136,10 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     KL(π_old ‖ π_θ) per trained step on the stored chains, which π_old sampled: k3 of
     log(π_θ/π_old), i.e. mean(ratio − 1 − log ratio) as in common PPO code. It grows like |log ratio|
     where a step's density collapses; the reverse form, mean(1/ratio − 1 + log ratio), grows like
-    1/ratio and overflowed to inf on the clean-chunk head's sharp last step. `kl_bc_update`
-    (only with `kl_coef` > 0) is the KL-to-BC penalty term averaged over the update's minibatches;
-    `approx_kl_first_update` the approximate KL on the minibatch right after the iteration's first update.
+    1/ratio and overflowed to inf on the clean-chunk head's sharp last step. With `kl_coef` > 0 the loss
+    adds `kl_coef` × `kl_penalty` to BC, and `kl_bc_update` logs k3's KL(π_θ ‖ π_BC) averaged over the update's
+    minibatches. `approx_kl_first_update` is the approximate KL on the minibatch right after the iteration's
+    first update; `updates` the number of policy updates the iteration took.
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
     trained = trained_slice(K, cfg.trained_steps)
@@ -143,7 +151,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     critic_params = list(value_net.parameters())
     critic_ids = {id(p) for p in critic_params}
     policy_params = [p for g in optimizer.param_groups for p in g["params"] if id(p) not in critic_ids]
-    stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0}
+    stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0, "updates": 0}
     logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc_update", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
     first, stop = True, False
@@ -165,9 +173,9 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                     pg = -torch.min(ratio * a, ratio.clamp(1 - cfg.clip_eps, 1 + cfg.clip_eps) * a).mean()
                     loss = pg
                     if cfg.kl_coef > 0:
-                        kl_bc = k3_kl(data["logp_ref"][sub, trained] - lp).mean()
-                        loss = loss + cfg.kl_coef * kl_bc
-                        parts["kl"] += w * float(kl_bc.detach())
+                        ref = data["logp_ref"][sub, trained]
+                        loss = loss + cfg.kl_coef * kl_penalty(lp, ref).mean()
+                        parts["kl"] += w * float(k3_kl(ref - lp.detach()).mean())
                     (w * loss).backward()
                     parts["pg"] += w * float(pg.detach())
                     log_ratios.append(log_ratio.detach())
@@ -209,6 +217,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                            default=0)
                 group["lr"] = warmup_lr(cfg.lr, done, cfg.lr_warmup_updates)
             optimizer.step()
+            stats["updates"] += int(update_policy)
         stats["epochs"] = epoch + 1
         if stop:
             break
