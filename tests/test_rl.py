@@ -78,6 +78,21 @@ def test_gae_terminal_truncation_and_episode_boundaries():
     assert torch.allclose(ret, torch.tensor([0.5, 1.0, 0.75, 1.5]))
 
 
+def test_critics_bootstrap_nothing_at_success_or_the_training_cap():
+    """The heads see progress, so the cap ends their MDP: GAE uses no next value there; an episode that
+    ends before the cap without success (an env's own limit) still bootstraps."""
+    from action_decoder.rl.finetune import episode_ends
+
+    ro = SimpleNamespace(terminal=torch.tensor([False, False, True, False]),
+                         next_progress=torch.tensor([0.5, 1.0, 0.7, 0.9]))
+    ends = episode_ends(ro)
+    assert ends.tolist() == [False, True, True, False]
+    last = torch.tensor([False, True, True, True])
+    rewards, values = torch.tensor([1.0, 2.0, 3.0, 4.0]), torch.zeros(4)
+    adv, _ = gae(rewards, values, torch.full((4,), 100.0), ends, last, 0.5, 1.0)
+    assert adv.tolist() == pytest.approx([1.0 + 0.5 * 2.0, 2.0, 3.0, 4.0 + 0.5 * 100.0])
+
+
 def test_sac_entropy_gradient_reaches_sigma_only():
     policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
     cfg = SimpleNamespace(sde_steps=4)

@@ -212,6 +212,14 @@ def _check(cfg: FinetuneConfig) -> None:
     require_wandb(cfg.wandb)
 
 
+def episode_ends(ro) -> torch.Tensor:
+    """[N] bool: decisions after which nothing follows, where critics bootstrap with 0: success with
+    `--reward success`, and the training cap. The value and Q heads see the episode's progress, so the
+    cap belongs to their MDP (a time-aware value is 0 there); bootstrapping at progress 1 would read a
+    head never trained there."""
+    return ro.terminal | (ro.next_progress >= 1)
+
+
 def _check_resumed_config(saved: Optional[dict], cfg: FinetuneConfig, ckpt: Path) -> None:
     """`--resume` continues the run it finds only with that run's options (`RUN_OPTIONS` aside)."""
     if saved is None:           # checkpoints written before the config was stored
@@ -416,7 +424,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             with torch.no_grad():
                 values = critic(norm(ro.states), ro.progress)
                 next_values = critic(norm(ro.next_states), ro.next_progress)
-            adv, ret = gae(rewards, values, next_values, ro.terminal, ro.last, cfg.gamma, cfg.gae_lambda)
+            adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
             if group > 1:
                 adv = group_advantages(rewards, ro.last, cfg.gamma, group)
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
@@ -425,7 +433,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                                update_policy=group > 1 or iteration >= critic_warmup)
         else:
             buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
-                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": ro.terminal})
+                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": episode_ends(ro)})
             stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
             if buffer.size >= cfg.sac_batch_size:
                 runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
