@@ -33,10 +33,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
+from action_decoder.rl.finetune import RUN_OPTIONS
+
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
-RUN_FIELDS = frozenset({"checkpoint", "output_dir", "task", "algo", "sigma", "env_steps", "max_cpu_minutes", "seed",
-                        "eval_episodes", "eval_every", "checkpoint_every", "resume", "wandb", "wandb_project"})
+RUN_FIELDS = RUN_OPTIONS | {"task", "algo", "sigma", "seed"}
 """`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
