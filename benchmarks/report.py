@@ -117,8 +117,10 @@ def render(results: dict, plot_name: str | None) -> str:
     mem = [s for s in results.get("training", []) if "memory" in s]
     if mem:
         lines += ["## 5. Memory of one training step", "",
-                  f"Measured: {mem[0]['memory']['what']} — the CPU analogue of "
-                  "`torch.cuda.max_memory_allocated()`; weights and optimizer state that exist "
+                  f"Measured: {mem[0]['memory']['what']}"
+                  + ("" if results["machine"]["device"].startswith("cuda")
+                     else " — the CPU analogue of `torch.cuda.max_memory_allocated()`")
+                  + "; weights and optimizer state that exist "
                   "before the step are not counted, gradients created by it are.", ""]
         names = list(mem[0]["memory"]["bytes"])
         header = ["decoder"] + [f"{s['size_name']} (batch {s['batch']}) MiB" for s in mem] + \

@@ -479,3 +479,27 @@ def test_rl_fine_tuning_directory_and_k_follow_the_options(monkeypatch):
     assert rl_finetune.ft_dir_name(["--sigma", "0.5"], 0) == "ft_sigma-0.5"
     assert rl_finetune.planned_config(["--sde-steps=5"]).sde_steps == 5
     assert rl_finetune.planned_config(["--sde-steps", "5"]).sde_steps == 5
+
+
+def test_training_rows_name_the_du_dt_method_they_time(bench_main):
+    import benchmarks.suite as suite
+    from action_decoder import DecoderConfig
+
+    bc = suite.BenchConfig.preset("tiny")
+    variants = suite._train_variants(bc, bc.sizes[0])
+    default = DecoderConfig(decoder_type="mean_flow")
+    row = variants[suite.MF_DEFAULT_ROW]
+    assert (row.meanflow_dudt, row.meanflow_ratio_r_neq_t) == (default.meanflow_dudt, default.meanflow_ratio_r_neq_t)
+    jvp = [c for name, c in variants.items() if "JVP" in name]
+    assert jvp and all(c.meanflow_dudt == "jvp" for c in jvp)
+    assert [c.meanflow_ratio_r_neq_t for c in jvp] == list(bc.mf_ratios)
+
+
+def test_memory_text_names_the_cpu_analogue_only_on_a_cpu(bench_main):
+    from benchmarks.report import render
+
+    cpu = json.loads((ROOT / "docs" / "benchmarks" / "results.json").read_text())
+    gpu = json.loads((ROOT / "docs" / "benchmarks" / "gpu" / "results.json").read_text())
+    assert (cpu["machine"]["device"], gpu["machine"]["device"]) == ("cpu", "cuda")
+    assert "CPU analogue" in render(cpu, None)
+    assert "CPU analogue" not in render(gpu, None) and "torch.cuda.max_memory_allocated" in render(gpu, None)
