@@ -361,3 +361,23 @@ def test_record_cameras_cli_writes_a_video_dataset_that_loads(rendering, tmp_pat
                           "--image-size", "32"], env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert res.stderr.startswith("action-decoder: error: --cameras: expected one of") and "corner2" in res.stderr
+
+
+def test_a_datasets_single_camera_observation_image_trains_and_loads(tmp_path, monkeypatch, capsys):
+    from action_decoder import ActionDecoderPolicy, cli
+    from action_decoder.evaluate import policy_camera_rig
+
+    episodes = _toy_episodes([12, 12, 12])
+    for e, ep in enumerate(episodes):                 # LeRobot's pusht / xarm name their one camera so
+        ep["images"] = {"observation.image": np.stack([_smooth(e, f) for f in range(12)])[:, :32, :32]}
+    root = write_episodes(tmp_path / "ds", episodes, ["t"], 10)
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    assert cli.main(["train", "--dataset", str(root), "--output-dir", str(tmp_path / "run"), "--steps", "2",
+                     "--hidden-size", "32", "--num-layers", "1", "--batch-size", "4", "--image-size", "16",
+                     "--no-progress"]) == 0
+    assert "cameras: observation.image (16x16 px" in capsys.readouterr().out
+    policy = ActionDecoderPolicy.from_pretrained(tmp_path / "run" / "final")
+    assert policy.config.cameras == ("observation.image",)
+    with pytest.raises(ValueError, match=r"^checkpoint cameras: expected keys 'observation.images.<simulator "
+                                         r"camera>' to render, got \['observation.image'\]"):
+        policy_camera_rig(policy)

@@ -265,3 +265,30 @@ def test_train_dataset_with_default_evaluation_needs_no_simulator(tmp_path):
                          env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "val_loss=" in res.stdout
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"features": [1, 2]}, r"info.json: \"features\" expected an object of feature name"),
+    ({"fps": "ten"}, r"info.json: \"fps\" expected a positive number of frames per second, got 'ten'$"),
+    ({"fps": 0}, r"info.json: \"fps\" expected a positive number of frames per second, got 0$"),
+])
+def test_malformed_info_is_one_line_naming_the_field(tmp_path, change, match):
+    root = _copy(V30, tmp_path)
+    _edit_info(root, **change)
+    with pytest.raises(ValueError, match=match):
+        load_dataset(root)
+
+
+@pytest.mark.parametrize("values, match", [
+    ([None], r"column 'task_index' expected an integer per frame, got type int64 with \d+ nulls"),
+    ([-1], r"column 'task_index' expected indices >= 0 into meta/tasks, got -1"),
+])
+def test_a_bad_task_index_names_the_file(tmp_path, values, match):
+    root = _copy(V30, tmp_path)
+    path = next((root / "data").rglob("*.parquet"))
+    table = pq.read_table(path)
+    column = pa.array(values * table.num_rows, pa.int64())
+    table = table.set_column(table.column_names.index("task_index"), "task_index", column)
+    pq.write_table(table, path)
+    with pytest.raises(ValueError, match=rf"^{path}: {match}"):
+        load_dataset(root)

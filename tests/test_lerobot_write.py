@@ -257,3 +257,36 @@ def test_record_cli_writes_a_lerobot_dataset(tmp_path, capsys):
         assert main(["record", "--task", "metaworld/reach", *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("action-decoder: error: ") and match in err and err.count("\n") == 1
+
+
+def test_a_one_dimensional_action_is_a_plain_column_as_lerobot_stores_it(tmp_path):
+    rng = np.random.default_rng(1)
+    episodes = [{"observation.state": rng.normal(size=(n, 3)), "action": rng.normal(size=(n, 1)), "task_index": 0}
+                for n in (4, 6)]
+    root = write_episodes(tmp_path / "ds", episodes, ["grip"], 10)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["features"]["action"]["shape"] == [1]
+    assert pq.read_schema(root / DATA).field("action").type == pa.float32()       # LeRobot's Value("float32")
+    ds = load_dataset(root)
+    np.testing.assert_allclose(ds.actions, np.concatenate([ep["action"] for ep in episodes]), rtol=1e-6)
+    assert ds.actions.shape == (10, 1)
+
+
+def test_a_continuation_wider_or_narrower_than_the_action_is_refused(tmp_path):
+    episodes = _episodes(np.random.default_rng(0), [5, 6])
+    for ep in episodes:
+        ep[CONTINUATION] = ep[CONTINUATION][..., :1]                                # [L, K, 1] with action [L, 2]
+    with pytest.raises(ValueError, match=r"^write_episodes: expected .*action.continuation \[L, K, D\].*got "
+                                         r"per-frame shapes"):
+        write_episodes(tmp_path / "ds", episodes, ["a", "b"], 10)
+
+
+def test_the_reader_checks_the_continuations_declared_shape(tmp_path):
+    root = write_episodes(tmp_path / "ds", _episodes(np.random.default_rng(0), [5, 6]), ["a", "b"], 10)
+    path = root / "meta" / "info.json"
+    info = json.loads(path.read_text())
+    info["features"][CONTINUATION]["shape"] = [2, 4]                                  # 8 values, but as [K, 4]
+    path.write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=r"info.json: feature 'action.continuation' expected shape \[4, 2\] "
+                                         r"\(8 values per frame, action width 2\), got \[2, 4\]$"):
+        load_dataset(root)

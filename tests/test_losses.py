@@ -494,3 +494,17 @@ def test_policy_trains_with_the_configured_target():
     assert rows == [32, n, n] and grad == [True, False, False] and torch.isfinite(loss)
     bf16 = _expert_policy(meanflow_target="split").to(torch.bfloat16)
     assert torch.isfinite(bf16.compute_loss(batch).loss)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"ratio_r_neq_t": -0.25}, r"^ratio_r_neq_t: expected a fraction of the rows in \[0, 1\], got -0.25$"),
+    ({"ratio_r_neq_t": 1.5}, r"^ratio_r_neq_t: expected a fraction of the rows in \[0, 1\], got 1.5$"),
+    ({"ratio_r_neq_t": -0.25, "dudt": "finite_difference"}, r"^ratio_r_neq_t: "),
+    ({"adaptive_c": -1.0}, r"^adaptive_c: expected a positive constant"),
+    ({"adaptive_p": -0.5}, r"^adaptive_p: expected a power >= 0"),
+    ({"time_std": 0.0}, r"^time_std: expected a positive std"),
+])
+def test_meanflow_loss_refuses_out_of_range_numbers_in_one_line(kw, match):
+    u = lambda x, t, r: 0.3 * x                                                 # noqa: E731
+    with pytest.raises(ValueError, match=match):
+        meanflow_loss(u, torch.randn(8, 4, 2), torch.Generator().manual_seed(0), **kw)

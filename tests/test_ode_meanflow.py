@@ -166,3 +166,25 @@ def test_identity_velocity_runs_in_the_samplers(gaussian, dtype):
     assert torch.allclose(out.mean(0), gaussian.mean, atol=0.03)
     assert torch.allclose(out.std(0), torch.full_like(gaussian.mean, gaussian.std), atol=0.03)
     assert torch.isfinite(res.log_prob).all()
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_a_callable_that_writes_into_its_t_changes_no_later_call(batch):
+    seen = []
+
+    def observe(x, t):
+        seen.append(t.clone())
+        return torch.zeros_like(x)
+
+    def scale_t_in_place(x, t):
+        t.mul_(2.0)
+        return torch.zeros_like(x)
+
+    noise = torch.randn(batch, 4, 2)
+    sample_ode(observe, noise, 4)
+    before = torch.stack(seen)
+    sample_ode(scale_t_in_place, noise, 4)
+    seen.clear()
+    sample_ode(observe, noise, 4)
+    torch.testing.assert_close(torch.stack(seen), before)
+    torch.testing.assert_close(before[:, 0], time_grid(4)[:-1])

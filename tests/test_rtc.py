@@ -311,3 +311,16 @@ def test_benchmark_table_pools_seeds_by_episode_and_jerk_by_stencil(tmp_path):
     assert execution[9] == "0.25" and execution[12] == "1.00×"
     per_task = next(l for l in page.read_text().splitlines() if l.startswith("| MF K=1 | 2 |") and "/" in l)
     assert per_task.split("|")[3].strip() == "75 / 75 / 25"
+
+
+def test_flow_matching_guidance_under_inference_mode_is_one_line_and_meanflows_works():
+    gm, g = two_modes(), Gaussian(torch.linspace(-1, 1, H * D, dtype=torch.float64).reshape(H, D), 0.3)
+    e, prev = noise(), torch.randn(16, 5, D, dtype=torch.float64)
+    with torch.no_grad():
+        expected = sample_ode_rtc(gm.velocity, e, prev, 2, 4)
+    with torch.inference_mode():
+        assert sample_meanflow_rtc(g.avg_velocity, e, prev, 2, 1).shape == e.shape
+        with pytest.raises(RuntimeError, match=r"^prev_chunk: .*vector-Jacobian product.*torch.no_grad\(\), not "
+                                               r"torch.inference_mode\(\)"):
+            sample_ode_rtc(gm.velocity, e, prev, 2, 4)
+    assert torch.isfinite(expected).all()

@@ -421,3 +421,14 @@ def test_per_row_generators_make_each_row_independent_of_its_batch():
         torch.testing.assert_close(batched.step_log_probs[b:b + 1], alone.step_log_probs, rtol=0, atol=1e-4)
     with pytest.raises(ValueError, match="generator: expected a torch.Generator or a list of 3"):
         sample_sde(velocity, noise, 5, sigma=0.5, generator=gens([1, 2]))
+
+
+def test_editing_the_returned_actions_in_place_leaves_the_chain_and_its_log_probs():
+    velocity = lambda x, t: -x                                                  # noqa: E731
+    res = sample_sde(velocity, torch.randn(2, 3, 1), 4, 0.5, return_logprob=True,
+                     generator=torch.Generator().manual_seed(0))
+    chain = res.chain.clone()
+    res.actions.clamp_(-0.05, 0.05)                        # what a rollout does before stepping an environment
+    assert torch.equal(res.chain, chain)
+    again = chain_log_prob(velocity, res.chain, 0.5, grid=res.grid)
+    torch.testing.assert_close(again, res.step_log_probs)

@@ -214,8 +214,11 @@ def policy_camera_rig(policy: ActionDecoderPolicy):
     cfg = policy.config
     if not cfg.uses_cameras:
         return None
-    return CameraObservation([key[len(CAMERA_PREFIX):] for key in cfg.cameras], cfg.image_size,
-                             field="checkpoint cameras")
+    names = [key[len(CAMERA_PREFIX):] for key in cfg.cameras if key.startswith(CAMERA_PREFIX)]
+    if len(names) != len(cfg.cameras):
+        raise ValueError(f"checkpoint cameras: expected keys '{CAMERA_PREFIX}<simulator camera>' to render, got "
+                         f"{list(cfg.cameras)} (a dataset's unnamed camera has no simulator view)")
+    return CameraObservation(names, cfg.image_size, field="checkpoint cameras")
 
 
 def _mean_jerk(results: list) -> Optional[float]:

@@ -43,6 +43,9 @@ REQUIRED_COLUMNS = (STATE, ACTION, "episode_index", "frame_index")
 
 def _matrix(table: pa.Table, name: str, path: Path) -> np.ndarray:
     column = table[name].combine_chunks()
+    if (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)) and not column.null_count:
+        # LeRobot stores a feature of shape [1] as a plain number per frame
+        return column.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(column), 1)
     if not (pa.types.is_list(column.type) or pa.types.is_large_list(column.type) or pa.types.is_fixed_size_list(column.type)):
         raise ValueError(f"{path}: column {name!r} expected a list of floats per frame, got type {column.type}")
     widths = pc.list_value_length(column).to_numpy(zero_copy_only=False)
@@ -55,6 +58,20 @@ def _matrix(table: pa.Table, name: str, path: Path) -> np.ndarray:
     while pa.types.is_fixed_size_list(values.type):   # [K, D] per frame (v3.0 action.continuation)
         values = values.flatten()
     return values.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(column), -1)
+
+
+def _task_index(table: pa.Table, path: Path) -> np.ndarray:
+    """The ``task_index`` column as int64 ``[N]`` (0 for every frame when the column is absent)."""
+    if "task_index" not in table.column_names:
+        return np.zeros(table.num_rows, np.int64)
+    column = table["task_index"].combine_chunks()
+    if column.null_count or not pa.types.is_integer(column.type):
+        raise ValueError(f"{path}: column 'task_index' expected an integer per frame, got type {column.type} "
+                         f"with {column.null_count} nulls")
+    task = column.to_numpy(zero_copy_only=False).astype(np.int64)
+    if len(task) and task.min() < 0:
+        raise ValueError(f"{path}: column 'task_index' expected indices >= 0 into meta/tasks, got {int(task.min())}")
+    return task
 
 
 V2, V3 = ("v2.0", "v2.1"), ("v3.0",)
@@ -70,6 +87,12 @@ def read_info(root: str | Path) -> dict:
     if not isinstance(info, dict):
         raise ValueError(f"{path}: expected a JSON object with \"codebase_version\", \"fps\" and \"features\", "
                          f"got {type(info).__name__}")
+    if not isinstance(info.get("features", {}), dict):
+        raise ValueError(f"{path}: \"features\" expected an object of feature name -> {{\"dtype\", \"shape\"}}, "
+                         f"got {info['features']!r:.80}")
+    fps = info.get("fps")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0):
+        raise ValueError(f"{path}: \"fps\" expected a positive number of frames per second, got {fps!r}")
     return info
 
 
@@ -263,7 +286,7 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
             raise ValueError(f"{path}: expected an episode with at least one frame, got an empty file (0 rows); "
                              f"delete it or record the episode again")
         states, actions = _matrix(table, STATE, path), _matrix(table, ACTION, path)
-        task = table["task_index"].to_numpy() if "task_index" in table.column_names else np.zeros(len(table), np.int64)
+        task = _task_index(table, path)
         more = _matrix(table, CONTINUATION, path) if CONTINUATION in table.column_names else None
         times.append(table["timestamp"].to_numpy().astype(np.float64) if "timestamp" in table.column_names else
                      table["frame_index"].to_numpy() / float(info.get("fps") or 1))
@@ -288,6 +311,12 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
         if continuations.shape[1] % actions.shape[1]:
             raise ValueError(f"{root}: column {CONTINUATION!r} expected K × {actions.shape[1]} values per frame "
                              f"(K actions), got {continuations.shape[1]}")
+        declared = ((info.get("features") or {}).get(CONTINUATION) or {}).get("shape")
+        width = continuations.shape[1]
+        if declared is not None and list(declared) != [width // actions.shape[1], actions.shape[1]]:
+            raise ValueError(f"{root / 'meta' / 'info.json'}: feature {CONTINUATION!r} expected shape "
+                             f"[{width // actions.shape[1]}, {actions.shape[1]}] ({width} values per frame, "
+                             f"action width {actions.shape[1]}), got {declared}")
         continuations = continuations[order].reshape(len(actions), -1, actions.shape[1])  # [N, K, D]
     ids, starts, lengths = np.unique(episode, return_index=True, return_counts=True)
     for i, start, length in zip(ids, starts, lengths):

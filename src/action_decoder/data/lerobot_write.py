@@ -136,7 +136,9 @@ def _check(episodes: Sequence[dict], tasks: Sequence[str], fps: float) -> None:
         if len({key in ep for ep in episodes}) > 1:
             raise ValueError(f"write_episodes: {key} expected in every episode or in none, got it in some")
     shapes = {tuple(np.shape(ep[k])[1:] if k in ep else None for k in (STATE, ACTION, CONTINUATION)) for ep in episodes}
-    if len(shapes) > 1 or len(next(iter(shapes))[0] or ()) != 1 or len(next(iter(shapes))[1] or ()) != 1:
+    state, action, more = next(iter(shapes))
+    if len(shapes) > 1 or len(state or ()) != 1 or len(action or ()) != 1 or \
+            (more is not None and (len(more) != 2 or more[-1] != action[0])):
         raise ValueError(f"write_episodes: expected {STATE} [L, S], {ACTION} [L, D] (and {CONTINUATION} [L, K, D]) "
                          f"with the same widths in every episode, got per-frame shapes {sorted(shapes, key=str)}")
     _check_images(episodes)
@@ -259,7 +261,7 @@ def write_episodes(
             for field in schema:
                 values = np.concatenate([p[field.name] for p in parts])                # [N, ...]
                 array = pa.array(values.reshape(-1), type=ARROW[features[field.name]["dtype"]])
-                for width in reversed(values.shape[1:]):
+                for width in reversed(values.shape[1:] if features[field.name]["shape"] != [1] else ()):
                     array = pa.FixedSizeListArray.from_arrays(array, width)
                 arrays.append(array.cast(field.type))
             path = root / DATA_PATH.format(chunk_index=file_no // CHUNK_SIZE, file_index=file_no % CHUNK_SIZE)

@@ -142,6 +142,10 @@ def sample_meanflow_times(batch: int, ratio_r_neq_t: float, mean: float, std: fl
         raise ValueError(f"time_dist: expected one of {list(TIME_DISTS)}, got {dist!r}")
     if not 0.0 <= one_step_share <= 1.0:
         raise ValueError(f"one_step_share: expected a fraction in [0, 1], got {one_step_share!r}")
+    if not 0.0 <= ratio_r_neq_t <= 1.0:
+        raise ValueError(f"ratio_r_neq_t: expected a fraction of the rows in [0, 1], got {ratio_r_neq_t!r}")
+    if dist == "logit_normal" and not std > 0:
+        raise ValueError(f"time_std: expected a positive std of the logit-normal times, got {std!r}")
     if dist == "uniform":
         s = torch.rand(batch, 2, generator=generator, device=device, dtype=dtype)
     else:
@@ -208,6 +212,10 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         raise ValueError(f"target: expected one of {list(TARGETS)}, got {target!r}")
     if target == "split" and tangent != "sampled":
         raise ValueError(f"tangent: applies to target='identity'; expected 'sampled' with target='split', got {tangent!r}")
+    if not adaptive_p >= 0:
+        raise ValueError(f"adaptive_p: expected a power >= 0 (0: plain mean), got {adaptive_p!r}")
+    if not adaptive_c > 0:
+        raise ValueError(f"adaptive_c: expected a positive constant in 1 / (error + c)^p, got {adaptive_c!r}")
     a = actions.float() if actions.dtype != torch.float64 else actions
     B = a.shape[0]
     t, r, n = sample_meanflow_times(B, ratio_r_neq_t, time_mean, time_std, generator, a.device, a.dtype,

@@ -92,8 +92,14 @@ class Steps:
 
 
 def _steps(grid: Tensor, batch: int) -> Steps:
-    return Steps(grid, tuple(grid.diff().tolist()), tuple(grid[:-1, None].expand(-1, batch).unbind(0)),
-                 tuple(grid[1:, None].expand(-1, batch).unbind(0)))
+    starts = grid[:-1, None].expand(-1, batch).clone()                          # [K, B], not views of grid
+    ends = grid[1:, None].expand(-1, batch).clone()                             # [K, B]
+    return Steps(grid, tuple(grid.diff().tolist()), tuple(starts.unbind(0)), tuple(ends.unbind(0)))
+
+
+def _untouched(st: Steps) -> bool:
+    """No callable changed the cached step times in place (rows share their block's version counter)."""
+    return st.grid._version == 0 and st.starts[0]._version == 0 and st.ends[0]._version == 0
 
 
 @functools.lru_cache(maxsize=64)
@@ -110,7 +116,11 @@ def resolve_steps(steps: int, grid: Optional[Tensor], like: Tensor, dtype: torch
     """The grid a sampler integrates on: `grid` if given (validated), else uniform with `steps`."""
     if grid is None:
         check_steps(steps)
-        return _uniform_steps(steps, like.shape[0], like.device, dtype)
+        st = _uniform_steps(steps, like.shape[0], like.device, dtype)
+        if not _untouched(st):        # a callable wrote into its t: rebuild, never hand the edit on
+            _uniform_steps.cache_clear()
+            st = _uniform_steps(steps, like.shape[0], like.device, dtype)
+        return st
     grid = torch.as_tensor(grid)
     if grid.dim() != 1 or grid.numel() < 2:
         raise ValueError(f"grid: expected an ascending 1-D time grid [K+1] from 0 to 1, "

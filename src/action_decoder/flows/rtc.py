@@ -99,6 +99,10 @@ def _guidance(clean, x: Tensor, target: Tensor, weights: Tensor):
     Returns g and aux, both detached: an RTC chunk is for execution and carries no gradient.
     `torch.autograd.grad` (not `torch.func.vjp`: on the policy's network at batch 1 the latter
     costs 3.8 network calls against 2.1) under `enable_grad`, so it works inside `no_grad`."""
+    if torch.is_inference_mode_enabled():
+        raise RuntimeError("prev_chunk: this real-time chunking guidance needs a vector-Jacobian product through "
+                           "the network; call it under torch.no_grad(), not torch.inference_mode() "
+                           "(MeanFlow's own one-step guidance, sampler 'meanflow', works in either)")
     with torch.enable_grad():
         x_ = x.detach().requires_grad_()
         a_hat, aux = clean(x_)                                                # [B, H, D] each

@@ -205,7 +205,7 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
         means.append(mean)
     chain, means_t = torch.stack(states, 1), torch.stack(means, 1)   # [B, K+1, H, D], [B, K, H, D]
     stds = std.expand(B, K)
-    final = chain[:, -1]
+    final = x                                      # its own storage: editing actions leaves chain intact
     result = SDEResult(actions=final, chain=chain, means=means_t, stds=stds, eps=eps, grid=grid.clone())
     if squash:
         result.actions = torch.tanh(final)
