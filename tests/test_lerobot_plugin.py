@@ -125,6 +125,8 @@ def test_camera_keys_keep_the_feature_order_and_reach_the_core_config():
     ft = lambda *shape: SimpleNamespace(shape=shape)  # noqa: E731
     feats = {"observation.images.wrist": ft(3, 48, 64), "observation.state": ft(6), "observation.images.top": ft(3, 32, 32)}
     assert convert.camera_keys(feats) == CAM_KEYS
+    single = {"observation.state": ft(6), "observation.image": ft(3, 96, 96)}              # pusht, xarm
+    assert convert.camera_keys(single) == ["observation.image"] and convert.unused_inputs(single) == []
     cfg = convert.decoder_config(plugin_cfg(image_size=24, image_encoder="resnet18", image_tokens_per_camera=2,
                                             freeze_image_encoder=True, image_shift=2), 6, 3, convert.camera_keys(feats))
     assert cfg.cameras == tuple(CAM_KEYS) and (cfg.image_size, cfg.image_encoder) == (24, "resnet18")
