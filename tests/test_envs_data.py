@@ -292,3 +292,16 @@ def test_evaluate_expert_and_zero_policy():
     assert again["lengths"][:2] == result["lengths"] and again["returns"][:2] == result["returns"]  # env reuse, num_envs
     with pytest.raises(ValueError, match="policy_fn output"):
         evaluate(lambda s, t: np.zeros((len(s), 2, 4)), "metaworld/reach", episodes=1, n_action_steps=4)
+
+
+def test_actions_in_metres_reach_the_decoder_at_unit_scale_and_constant_ones_stay_finite():
+    from action_decoder.data import EpisodeDataset
+
+    rng = np.random.default_rng(0)
+    actions = rng.normal(0, [0.003, 0.005, 0.5, 0.0], (400, 4)).astype(np.float32)      # last dim constant
+    states = np.column_stack([rng.normal(0, 1, 400), np.full(400, 0.7)]).astype(np.float32)
+    ds = EpisodeDataset(states, actions, np.zeros(400, np.int64), np.array([200, 200]), ["t"], 10)
+    std = ds.stats["action"]["std"]
+    np.testing.assert_allclose((actions[:, :3] - ds.stats["action"]["mean"][:3]).std(0) / std[:3], 1.0, rtol=1e-4)
+    assert std[3] == pytest.approx(1e-2)                          # a constant dimension takes STD_FLOOR
+    assert ds.stats["observation.state"]["std"][1] == pytest.approx(1e-2)     # states keep STD_FLOOR

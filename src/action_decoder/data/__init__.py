@@ -5,12 +5,13 @@ from .demos import cache_root, generate_demos, load_demos, record_demos
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
 from .lerobot_write import write_episodes
-from .stats import STD_FLOOR, compute_stats, load_stats, save_stats
+from .stats import ACTION_CONSTANT_BELOW, STD_FLOOR, compute_stats, load_stats, save_stats
 
 __all__ = [
     "ACTION",
     "CONTINUATION",
     "STATE",
+    "ACTION_CONSTANT_BELOW",
     "STD_FLOOR",
     "ChunkDataset",
     "EpisodeDataset",

@@ -12,11 +12,12 @@ from typing import Sequence
 
 import numpy as np
 
-from .stats import compute_stats
+from .stats import ACTION_CONSTANT_BELOW, compute_stats
 
 STATE = "observation.state"   # LeRobot feature names
 ACTION = "action"
 CONTINUATION = "action.continuation"
+CONSTANT_BELOW = {ACTION: ACTION_CONSTANT_BELOW}   # data/stats.py: why actions keep small stds
 """Optional per-frame ``[K, D]``: the demonstrator's own next K actions from this frame's state
 (recorded with noise, the frames that follow do not show them; see ``demos.py``)."""
 
@@ -81,7 +82,7 @@ class EpisodeDataset:
         if self.episode_ids is None:
             self.episode_ids = np.arange(len(self.episode_lengths))
         if not self.stats:
-            self.stats = compute_stats({STATE: self.states, ACTION: self.actions})
+            self.stats = compute_stats({STATE: self.states, ACTION: self.actions}, constant_below=CONSTANT_BELOW)
 
     @property
     def cameras(self) -> list[str]:

@@ -1,7 +1,11 @@
 """Normalisation statistics (LeRobot's ``meta/stats.json`` form: mean, std, min, max, count).
 
 The std is floored: Meta-World states have constant dimensions (std 0), and dividing by
-a zero std would turn them into NaN or huge values.
+a zero std would turn them into NaN or huge values. A state dimension whose std is below
+``STD_FLOOR`` takes ``STD_FLOOR`` (its nearly constant values would otherwise become unit-scale
+inputs). An action dimension takes it only below ``ACTION_CONSTANT_BELOW``, i.e. when it is
+constant: an action in metres (an end-effector delta of std 0.003) keeps its own std and reaches
+the decoder at unit scale.
 """
 
 from __future__ import annotations
@@ -13,19 +17,24 @@ from typing import Mapping
 import numpy as np
 
 STD_FLOOR = 1e-2
+ACTION_CONSTANT_BELOW = 1e-6
 STAT_KEYS = ("mean", "std", "min", "max")
 
 
-def compute_stats(features: Mapping[str, np.ndarray], std_floor: float = STD_FLOOR) -> dict[str, dict]:
-    """Per-dimension mean/std/min/max of each ``[N, dim]`` feature, std floored at ``std_floor``."""
+def compute_stats(features: Mapping[str, np.ndarray], std_floor: float = STD_FLOOR,
+                  constant_below: Mapping[str, float] | None = None) -> dict[str, dict]:
+    """Per-dimension mean/std/min/max of each ``[N, dim]`` feature. A std below the feature's
+    ``constant_below`` entry (default: ``std_floor`` itself) is replaced by ``std_floor``."""
     stats = {}
     for name, values in features.items():
+        below = (constant_below or {}).get(name, std_floor)
         values = np.asarray(values, dtype=np.float64)
         if values.ndim != 2 or len(values) == 0:
             raise ValueError(f"compute_stats: feature {name!r} must be a non-empty [N, dim] array, got shape {values.shape}")
+        std = values.std(0)
         stats[name] = {
             "mean": values.mean(0).astype(np.float32),
-            "std": np.maximum(values.std(0), std_floor).astype(np.float32),
+            "std": np.where(std < below, std_floor, std).astype(np.float32),
             "min": values.min(0).astype(np.float32),
             "max": values.max(0).astype(np.float32),
             "count": int(len(values)),
