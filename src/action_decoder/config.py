@@ -135,8 +135,8 @@ class DecoderConfig:
     vlm_head_dim: Optional[int] = None
     vlm_num_key_value_heads: Optional[int] = None
     # --- cameras (expert/image_encoder.py; none: no image encoder) ---
-    # LeRobot feature keys, e.g. "observation.images.corner2"; batch["images"] [B, N_cam, 3, S, S]
-    # stacks them in this order.
+    # LeRobot feature keys, e.g. "observation.images.corner2" (or a dataset's single "observation.image");
+    # batch["images"] [B, N_cam, 3, S, S] stacks them in this order.
     cameras: tuple = ()
     image_size: int = 64                   # S: square frames, in pixels
     image_encoder: str = "conv"            # "conv" (small, GroupNorm) or "resnet18" (transformers, GroupNorm)
