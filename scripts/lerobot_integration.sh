@@ -48,8 +48,10 @@ setup_venv() {
   # would replace the huggingface-hub that lerobot 0.4.4 needs).
   "$VENV/bin/pip" install --no-deps -e "$REPO" -e "$REPO/lerobot_policy_action_decoder" || return 1
   "$PY" -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$WORK/constraints.txt"
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "diffusers>=0.30" "safetensors>=0.4" \
-      "tyro>=0.8" "tqdm>=4.60" "matplotlib>=3.7" "pyarrow>=14" pytest || return 1
+  # The core's dependencies are read from its pyproject.toml (all but torch), so this list cannot drift.
+  mapfile -t deps < <("$PY" -c "import sys, tomllib, re; deps = tomllib.load(open(sys.argv[1], 'rb'))['project']['dependencies']; \
+print('\n'.join(d for d in deps if re.split('[<>=!~ ;]', d)[0] != 'torch'))" "$REPO/pyproject.toml")
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "${deps[@]}" pytest || return 1
   # Meta-World only for `action-decoder record` (step c); the other steps need no simulator.
   "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0" \
       || echo "metaworld not installed: step c will fail"
