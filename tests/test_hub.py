@@ -105,6 +105,11 @@ def test_eval_adds_a_row_per_setting_and_replaces_a_row_with_the_same_settings(t
     assert [r[:6] for r in rows] == [["sde", "5", "8", "2", "1", "0.5000"], ["ode", "2", "8", "4", "0", "1.0000"],
                                      ["ode", "2", "8", "3", "0", "1.0000"]]
     assert [r["success_rate"] for r in read_results(ckpt)] == [0.5, 1.0, 1.0]
+    monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate([False, False, False, False]))
+    run_eval(EvalConfig(checkpoint=str(ckpt), episodes=4, max_steps=50))    # a shorter cap: its own row
+    rows = table_rows(ckpt / "README.md")
+    assert [r[5] for r in rows if r[:5] == ["ode", "2", "8", "4", "0"]] == ["1.0000", "0.0000"]
+    assert rows[-1][7] == "at most 50 steps per episode, delay 0"
 
 
 def test_results_follow_these_weights_through_save_load_and_push(tmp_path, monkeypatch):
@@ -299,3 +304,21 @@ def test_a_camera_policys_card_names_its_cameras(tmp_path):
                           hidden_size=32, num_hidden_layers=1)
     ActionDecoderPolicy(plain).save_pretrained(tmp_path / "p")
     assert "| conditioning | state only |" in (tmp_path / "p" / "README.md").read_text()
+
+
+def test_saving_final_again_keeps_the_results_and_eval_files_of_the_same_weights(tmp_path, monkeypatch):
+    from action_decoder.run_dir import save_final
+
+    policy = tiny_policy()
+    final = save_final(tmp_path, policy)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate([True, False, True, True]))
+    run_eval(EvalConfig(checkpoint=str(final), episodes=4))
+    evals = sorted(p.name for p in final.glob("eval_*"))
+    assert evals and len(read_results(final)) == 1
+    save_final(tmp_path, policy)                                # `train --resume` of a finished run
+    assert sorted(p.name for p in final.glob("eval_*")) == evals and len(read_results(final)) == 1
+    with torch.no_grad():
+        next(policy.parameters()).add_(1.0)                     # other weights: their results do not apply
+    save_final(tmp_path, policy)
+    assert read_results(final) == [] and not list(final.glob("eval_*"))

@@ -34,3 +34,29 @@ def test_flow_head_given_to_ddpm_is_refused_not_ignored():
     with pytest.raises(ValueError, match="--flow-prediction.*--decoder DDPM"):
         _check(TrainConfig(decoder="DDPM", flow_prediction="sample"))
     _check(TrainConfig(decoder="DDPM"))
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"grad_clip": -1.0}, r"^--grad-clip: expected a positive finite gradient norm, got -1.0$"),
+    ({"grad_clip": 0.0}, r"^--grad-clip: "),
+    ({"lr": float("inf")}, r"^--lr: expected a positive finite learning rate, got inf$"),
+    ({"lr": float("nan")}, r"^--lr: "),
+    ({"weight_decay": -5.0}, r"^--weight-decay: expected a finite decay >= 0, got -5.0$"),
+    ({"warmup_steps": -10}, r"^--warmup-steps: expected a number of steps >= 0, got -10$"),
+    ({"prediction_type": "epsilon"}, r"^--prediction-type: sets DDPM's target; flow_matching takes --flow-prediction"),
+    ({"dataset": "some/dir", "task": "metaworld/reach"}, r"^--task metaworld/reach: choose generated Meta-World"),
+    ({"dataset": "some/dir", "demos": 50}, r"^--demos 50: choose generated Meta-World demonstrations"),
+])
+def test_options_that_would_be_ignored_or_break_training_are_refused_in_one_line(kw, match):
+    with pytest.raises(ValueError, match=match):
+        _check(TrainConfig(**kw))
+    _check(TrainConfig(decoder="DDPM", prediction_type="epsilon"))
+
+
+def test_an_image_size_without_cameras_is_refused():
+    from action_decoder.train import camera_fields
+
+    with pytest.raises(ValueError, match=r"^--image-size: set the image encoder of a camera policy; this run has no "
+                                         r"cameras"):
+        camera_fields(TrainConfig(image_size=128), None)
+    assert camera_fields(TrainConfig(), None) == {}

@@ -23,8 +23,10 @@ from .config import DecoderConfig
 
 CARD_NAME = "README.md"
 LIBRARY_NAME = "action-decoder"
-SETTINGS = ("tasks", "sampler", "steps", "n_action_steps", "episodes", "seed")
+SETTINGS = ("tasks", "sampler", "steps", "n_action_steps", "episodes", "seed", "max_steps", "delay", "rtc")
 """What makes two evaluations the same row: a new result with these settings replaces the old one."""
+LATER_SETTINGS = ("max_steps", "delay", "rtc")
+"""Settings that cards written before them do not hold: such a row reads them as None (not known)."""
 
 
 def weights_digest(tensors: dict) -> str:
@@ -54,9 +56,9 @@ def hub_dataset_id(path: Optional[str]) -> Optional[str]:
 def _result_row(result: EvalResult) -> Optional[dict]:
     """A row of ours from a `model-index` entry (None: an entry another tool wrote)."""
     args = result.metric_args or {}
-    if result.metric_type != "success_rate" or not all(k in args for k in SETTINGS):
+    if result.metric_type != "success_rate" or not all(k in args for k in SETTINGS if k not in LATER_SETTINGS):
         return None
-    return {**{k: args[k] for k in SETTINGS}, "success_rate": float(result.metric_value),
+    return {**{k: args.get(k) for k in SETTINGS}, "success_rate": float(result.metric_value),
             "per_task": dict(args.get("per_task") or {}), "weights_sha256": args.get("weights_sha256")}
 
 
@@ -72,7 +74,15 @@ def _eval_result(row: dict) -> EvalResult:
 
 def _settings_text(row: dict) -> str:
     return (f"{row['sampler']} K={row['steps']}, {row['n_action_steps']} actions per chunk, "
-            f"{row['episodes']} episodes per task, seed {row['seed']}")
+            f"{row['episodes']} episodes per task, seed {row['seed']}, {_cap_text(row)}")
+
+
+def _cap_text(row: dict) -> str:
+    """Episode cap, observation delay and RTC of a row ("not recorded" for a row older than them)."""
+    if row.get("max_steps") is None:
+        return "episode cap and delay not recorded"
+    return (f"at most {row['max_steps']} steps per episode, delay {row['delay']}"
+            + (" with real-time chunking" if row["rtc"] else ""))
 
 
 def read_results(directory: Path) -> list[dict]:
@@ -164,12 +174,12 @@ def _results_lines(results: list[dict]) -> list[str]:
     if not results:
         return ["Not measured yet: `action-decoder eval --checkpoint <this directory>` adds a row."]
     lines = ["Closed-loop success on layouts disjoint from the demonstrations (`action-decoder eval`):", "",
-             "| sampler | K | actions per chunk | episodes per task | seed | success rate | per task |",
-             "|---|---|---|---|---|---|---|"]
+             "| sampler | K | actions per chunk | episodes per task | seed | success rate | per task | episode cap, delay |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in results:
         per_task = ", ".join(f"{t} {v:.2f}" for t, v in r["per_task"].items()) if len(r["per_task"]) > 1 else ""
         lines.append(f"| {r['sampler']} | {r['steps']} | {r['n_action_steps']} | {r['episodes']} | {r['seed']} "
-                     f"| {r['success_rate']:.4f} | {per_task or ', '.join(r['tasks'])} |")
+                     f"| {r['success_rate']:.4f} | {per_task or ', '.join(r['tasks'])} | {_cap_text(r)} |")
     return lines
 
 
@@ -189,7 +199,8 @@ def record_result(directory: Path, policy, summary: dict, tasks: list[str]) -> P
     digest = weights_digest(policy.state_dict())
     row = {"tasks": list(tasks), "sampler": summary["sampler"], "steps": summary["steps"],
            "n_action_steps": summary["n_action_steps"], "episodes": summary["episodes_per_task"],
-           "seed": summary["seed"], "success_rate": float(summary["success_rate"]),
+           "seed": summary["seed"], "max_steps": summary["max_steps"], "delay": summary["delay"],
+           "rtc": bool(summary["rtc"]), "success_rate": float(summary["success_rate"]),
            "per_task": {k: float(v) for k, v in summary["per_task"].items()}, "weights_sha256": digest}
     results = merge_result(carried_results(read_results(directory), digest), row)
     return write_card(directory, policy.config, sum(p.numel() for p in policy.parameters()), results)

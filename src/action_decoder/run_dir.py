@@ -26,6 +26,7 @@ import torch
 from safetensors.torch import load_file
 from safetensors.torch import save as tensors_to_bytes
 
+from . import model_card
 from .policy import ActionDecoderPolicy
 
 CKPT_DIR, LAST, FINAL, LOCK = "checkpoints", "last", "final", ".lock"
@@ -165,11 +166,22 @@ def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
 
 
 def save_final(out: Path, policy) -> Path:
-    """`out/final` in `save_pretrained` format, replaced atomically."""
+    """`out/final` in `save_pretrained` format, replaced atomically. When the weights are those the
+    old `final/` holds (a finished run resumed), its measured results and evaluation files stay."""
     final, tmp = out / FINAL, out / ".tmp_final"
     with _writing(final, out, tmp):
         shutil.rmtree(tmp, ignore_errors=True)
-        policy.save_pretrained(tmp)
+        same = model_card.carried_results(model_card.read_results(final), model_card.weights_digest(policy.state_dict()))
+        before = getattr(policy, "_card_results", [])
+        policy._card_results = before + same
+        try:
+            policy.save_pretrained(tmp)
+        finally:
+            policy._card_results = before
+        if same:                                    # eval_*.json / .png / .mp4 of these weights
+            for path in final.iterdir():
+                if path.is_file() and not (tmp / path.name).exists():
+                    shutil.copy2(path, tmp / path.name)
         shutil.rmtree(final, ignore_errors=True)
         os.replace(tmp, final)
     return final

@@ -300,7 +300,8 @@ def flow_prediction(cfg: TrainConfig) -> str:
     return cfg.flow_prediction or ("sample" if cfg.decoder == "mean_flow" else "velocity")
 
 
-IMAGE_OPTIONS = ("image_encoder", "image_encoder_pretrained", "freeze_image_encoder", "image_tokens", "image_shift")
+IMAGE_OPTIONS = ("image_size", "image_encoder", "image_encoder_pretrained", "freeze_image_encoder", "image_tokens",
+                 "image_shift")
 
 
 def camera_fields(cfg: TrainConfig, images: Optional[Mapping[str, np.ndarray]]) -> dict:
@@ -447,8 +448,23 @@ def _check(cfg: TrainConfig) -> None:
         raise ValueError("--eval-episodes/--inference-steps: expected >= 0")
     if not 0 <= cfg.ema_decay < 1:
         raise ValueError(f"--ema-decay: expected a decay in [0, 1), got {cfg.ema_decay}")
-    if cfg.lr <= 0:
-        raise ValueError(f"--lr: expected a positive learning rate, got {cfg.lr}")
+    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
+        raise ValueError(f"--lr: expected a positive finite learning rate, got {cfg.lr}")
+    if not (math.isfinite(cfg.weight_decay) and cfg.weight_decay >= 0):
+        raise ValueError(f"--weight-decay: expected a finite decay >= 0, got {cfg.weight_decay}")
+    if not (math.isfinite(cfg.grad_clip) and cfg.grad_clip > 0):
+        raise ValueError(f"--grad-clip: expected a positive finite gradient norm, got {cfg.grad_clip}")
+    if cfg.warmup_steps < 0:
+        raise ValueError(f"--warmup-steps: expected a number of steps >= 0, got {cfg.warmup_steps}")
+    defaults = {f.name: f.default for f in fields(TrainConfig)}
+    if cfg.decoder != "DDPM" and cfg.prediction_type != defaults["prediction_type"]:
+        raise ValueError(f"--prediction-type: sets DDPM's target; {cfg.decoder} takes --flow-prediction, got "
+                         f"--prediction-type {cfg.prediction_type} with --decoder {cfg.decoder}")
+    if cfg.dataset is not None:
+        ignored = [f"--{k} {getattr(cfg, k)}" for k in ("task", "demos") if getattr(cfg, k) != defaults[k]]
+        if ignored:
+            raise ValueError(f"{', '.join(ignored)}: choose generated Meta-World demonstrations; with --dataset the "
+                             f"tasks and episodes come from the dataset (drop {', '.join(ignored)})")
     if cfg.flow_prediction is not None and cfg.decoder == "DDPM":
         raise ValueError(f"--flow-prediction: sets the flow matching or MeanFlow head, not DDPM's target "
                          f"(that is --prediction-type epsilon|sample); got --flow-prediction "
