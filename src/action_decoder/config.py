@@ -29,6 +29,12 @@ RTC_HORIZONS = ("auto", "overlap", "execution")        # which rows of prev_chun
 IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
 CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 SINGLE_CAMERA_KEY = "observation.image"                 # LeRobot's key for a dataset's only camera (pusht, xarm)
+
+
+def is_camera_key(key) -> bool:
+    """`observation.images.<name>` or `observation.image`: a LeRobot camera feature."""
+    return isinstance(key, str) and (key == SINGLE_CAMERA_KEY or
+                                     key.startswith(CAMERA_PREFIX) and len(key) > len(CAMERA_PREFIX))
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
@@ -228,8 +234,7 @@ class DecoderConfig:
     def _validate_cameras(self) -> None:
         cams = self.cameras
         if isinstance(cams, str) or not isinstance(cams, (list, tuple)) or \
-                not all(isinstance(c, str) and (c == SINGLE_CAMERA_KEY or c.startswith(CAMERA_PREFIX) and
-                                                len(c) > len(CAMERA_PREFIX)) for c in cams):
+                not all(is_camera_key(c) for c in cams):
             raise ValueError(f"cameras: expected a list of LeRobot camera keys '{CAMERA_PREFIX}<name>' or "
                              f"'{SINGLE_CAMERA_KEY}' (empty: no cameras), got {cams!r}")
         if len(set(cams)) != len(cams):

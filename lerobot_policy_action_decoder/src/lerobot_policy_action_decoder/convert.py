@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from action_decoder import DecoderConfig
-from action_decoder.config import CAMERA_PREFIX, SINGLE_CAMERA_KEY
+from action_decoder.config import is_camera_key
 from action_decoder.train import DEFAULT_STEPS  # sampling steps when num_inference_steps is None
 
 STATE, ACTION, PAD, TASK = "observation.state", "action", "action_is_pad", "task"
@@ -50,16 +50,12 @@ def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str
 def camera_keys(input_features: Mapping[str, Any]) -> list[str]:
     """The camera inputs (`observation.images.<name>`, or LeRobot's single `observation.image`), in the
     order of `input_features`: the order in which the policy stacks them."""
-    return [k for k in (input_features or {}) if _is_camera(k)]
-
-
-def _is_camera(key: str) -> bool:
-    return key == SINGLE_CAMERA_KEY or key.startswith(CAMERA_PREFIX)
+    return [k for k in (input_features or {}) if is_camera_key(k)]
 
 
 def unused_inputs(input_features: Mapping[str, Any]) -> list[str]:
     """Input keys the decoder does not read (environment state, ...): all but the state and the cameras."""
-    return sorted(k for k in (input_features or {}) if k != STATE and not _is_camera(k))
+    return sorted(k for k in (input_features or {}) if k != STATE and not is_camera_key(k))
 
 
 def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
