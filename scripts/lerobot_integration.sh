@@ -96,7 +96,9 @@ assert t == ['push the block', 'lift the cube'], t; print('tasks', t)" "$WORK/ad
 }
 
 record_and_load() {  # (c) needs `action-decoder record` and Meta-World
-  action-decoder --help 2>&1 | grep -qw record || { echo "action-decoder record: no such subcommand in this checkout"; return 1; }
+  # grep without -q reads all of the help, so the writer never dies of SIGPIPE under pipefail.
+  action-decoder --help 2>&1 | grep -w record > /dev/null \
+    || { echo "action-decoder record: no such subcommand in this checkout"; return 1; }
   rm -rf "$WORK/rec"
   action-decoder record --task metaworld/reach --demos 2 --output-dir "$WORK/rec" --seed 0 || return 1
   "$PY" - "$WORK/rec" <<'EOF'
