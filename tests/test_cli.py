@@ -50,7 +50,7 @@ def test_train_save_load_eval_cycle(tmp_path, env):
     last = res.stdout.strip().splitlines()[-1]
     assert last.startswith("success_rate=") and 0.0 <= float(last.split("=")[1]) <= 1.0
     assert "episode 2/2" in res.stdout
-    name = out / "final" / f"eval_sde_k3_n{policy.config.n_action_steps}_seed0"     # named by its settings
+    name = out / "final" / f"eval_sde_k3_n{policy.config.n_action_steps}_seed0_e2"     # named by its settings
     summary = json.loads(name.with_suffix(".json").read_text())
     assert summary["sampler"] == "sde" and summary["steps"] == 3 and len(summary["results"][0]["successes"]) == 2
     assert name.with_suffix(".png").is_file()
@@ -399,3 +399,32 @@ def test_full_disk_gives_one_line_and_keeps_the_previous_checkpoint(tmp_path, mo
     assert ActionDecoderPolicy.from_pretrained(kept) is not None
     assert run_dir.load_state(kept)["step"] == 2
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["last", "step_0000002"]
+
+
+def test_a_run_without_its_checkpoints_is_not_overwritten(tmp_path, cli_main):
+    ds, out = _tiny_dataset(tmp_path / "ds"), tmp_path / "out"
+    assert cli_main(_ds_args(ds, out, "--steps", "2")).returncode == 0
+    shutil.rmtree(out / "checkpoints")                          # freed for disk space; final/ and the logs stay
+    weights = (out / "final" / "model.safetensors").read_bytes()
+    _one_line(cli_main(_ds_args(ds, out, "--steps", "3")), "--output-dir", "already holds a training run",
+              "a final policy")
+    _one_line(cli_main(_ds_args(ds, out, "--steps", "3", "--resume")), "--resume", "no checkpoint to continue from")
+    assert (out / "final" / "model.safetensors").read_bytes() == weights
+    assert json.loads((out / "final" / "step.json").read_text()) == {"step": 2}
+
+
+def test_record_image_size_without_cameras_and_a_failing_expert_are_one_line(tmp_path, cli_main, monkeypatch):
+    _one_line(cli_main(["record", "--task", "metaworld/reach", "--demos", "1", "--output-dir", str(tmp_path / "r"),
+                        "--image-size", "128"]), "--image-size", "--cameras")
+    monkeypatch.setattr("action_decoder.data.demos._rollout", lambda *a, **k: None)    # the expert never succeeds
+    _one_line(cli_main(["record", "--task", "metaworld/reach", "--demos", "2", "--output-dir", str(tmp_path / "r")]),
+              "--demos: the scripted expert of reach-v3 succeeded in 0 of 6 attempts")
+
+
+def test_an_interrupted_eval_does_not_point_to_a_resume_it_lacks(tmp_path, cli_main, monkeypatch):
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("action_decoder.evaluate.run_eval", interrupted)
+    res = cli_main(["eval", "--checkpoint", str(tmp_path)])
+    assert res.returncode == 130 and "--resume" not in res.stderr and "nothing was saved" in res.stderr

@@ -177,3 +177,23 @@ def test_meanflow_target_is_validated_and_a_format_4_checkpoint_reads_as_the_ide
     v4 = {k: v for k, v in cfg.to_dict().items() if k not in ADDED_FIELDS[5]}
     (tmp_path / "v4.json").write_text(json.dumps({**v4, "format_version": 4}))
     assert DecoderConfig.from_json(tmp_path / "v4.json").meanflow_target == "identity"
+
+
+@pytest.mark.parametrize("field", ["clip_sample", "flow_sde_use", "flow_sde_learn_sigma", "flow_sde_return_logprob",
+                                   "flow_sde_logprob_sigma_only"])
+def test_boolean_fields_refuse_strings(field):
+    with pytest.raises(ValueError, match=rf"^{field}: expected True or False, got 'false'$"):
+        DecoderConfig(**{field: "false"})
+
+
+def test_clip_sample_with_mean_std_normalisation_is_refused():
+    with pytest.raises(ValueError, match=r"clip_sample: clips DDPM's predicted chunk to \[-1, 1\].*mean_std"):
+        DecoderConfig(decoder_type="DDPM", clip_sample=True)
+    assert DecoderConfig(decoder_type="DDPM", clip_sample=True, normalization_mode="min_max").clip_sample
+
+
+def test_extra_that_json_cannot_hold_is_refused_at_construction():
+    import numpy as np
+
+    with pytest.raises(ValueError, match=r"extra: expected JSON data .*ndarray"):
+        DecoderConfig(extra={"tasks": np.array(["a", "b"])})

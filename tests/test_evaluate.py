@@ -79,7 +79,7 @@ def test_eval_keeps_one_summary_per_setting_and_numbers_lines_by_episode(checkpo
     assert [ln.split(": ")[1].split()[0] for ln in lines] == ["success", "failure", "success"]
     assert "1/3 done" in lines[0] and "3/3 done" in lines[2]
     run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=3, sampler="sde", steps=5, seed=1, n_action_steps=4))
-    first, second = checkpoint / "eval_ode_k2_n8_seed0.json", checkpoint / "eval_sde_k5_n4_seed1.json"
+    first, second = checkpoint / "eval_ode_k2_n8_seed0_e3.json", checkpoint / "eval_sde_k5_n4_seed1_e3.json"
     assert json.loads(first.read_text())["sampler"] == "ode" and first.with_suffix(".png").is_file()
     assert json.loads(second.read_text())["steps"] == 5
     assert sorted(p.name for p in checkpoint.glob("eval*")) == sorted([first.name, first.with_suffix(".png").name,
@@ -99,7 +99,7 @@ def test_eval_in_a_read_only_checkpoint_still_reports(checkpoint, capsys, monkey
     summary = run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2))
     out, err = capsys.readouterr()
     assert out.strip().splitlines()[-1] == "success_rate=0.5000" and summary["success_rate"] == 0.5
-    fallback = Path.cwd() / "eval_ode_k2_n8_seed0.json"
+    fallback = Path.cwd() / "eval_ode_k2_n8_seed0_e2.json"
     assert json.loads(fallback.read_text())["checkpoint"] == str(checkpoint)
     assert err.strip().splitlines() == [f"action-decoder: warning: cannot write {checkpoint / fallback.name} "
                                         f"(Permission denied); wrote {fallback} instead"]
@@ -206,3 +206,30 @@ def test_train_and_eval_a_camera_policy_on_metaworld_pixels_end_to_end(tmp_path)
     saved = json.loads((tmp_path / "run" / "final" / "config.json").read_text())
     assert saved["cameras"] == ["observation.images.corner2"] and saved["image_size"] == 32
     assert saved["state_layout"] == "metaworld_proprio"
+
+
+def test_summaries_of_other_episode_counts_or_tasks_do_not_replace_each_other(checkpoint):
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2))
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=4))
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2, task="metaworld/push"))   # a task it did not train on
+    names = sorted(p.name for p in checkpoint.glob("eval_*.json"))
+    assert names == ["eval_ode_k2_n8_seed0_e2.json", "eval_ode_k2_n8_seed0_e2_on-push-v3.json",
+                     "eval_ode_k2_n8_seed0_e4.json"]
+    assert json.loads((checkpoint / names[2]).read_text())["episodes_per_task"] == 4
+
+
+def test_output_naming_a_directory_puts_the_summary_inside_it(checkpoint, tmp_path):
+    (tmp_path / "evals").mkdir()
+    run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2, output=str(tmp_path / "evals")))
+    assert json.loads((tmp_path / "evals" / "eval_ode_k2_n8_seed0_e2.json").read_text())["success_rate"] == 0.5
+
+
+@pytest.mark.parametrize("fps", [float("inf"), 1e300, -1.0])
+def test_video_fps_out_of_range_is_refused_before_any_episode(checkpoint, fps, monkeypatch):
+    monkeypatch.setattr("action_decoder.envs.evaluate", lambda *a, **k: pytest.fail("ran an episode"))
+    with pytest.raises(ValueError, match=r"^--video-fps: expected a number in \[0, 1000\]"):
+        run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=1, video=True, video_fps=fps))
+
+
+def test_device_auto_evaluates_on_what_the_machine_has(checkpoint):
+    assert run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2, device="auto"))["success_rate"] == 0.5

@@ -310,15 +310,15 @@ def test_saving_final_again_keeps_the_results_and_eval_files_of_the_same_weights
     from action_decoder.run_dir import save_final
 
     policy = tiny_policy()
-    final = save_final(tmp_path, policy)
+    final = save_final(tmp_path, policy, 100)
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate([True, False, True, True]))
     run_eval(EvalConfig(checkpoint=str(final), episodes=4))
     evals = sorted(p.name for p in final.glob("eval_*"))
     assert evals and len(read_results(final)) == 1
-    save_final(tmp_path, policy)                                # `train --resume` of a finished run
+    save_final(tmp_path, policy, 100)                           # `train --resume` of a finished run
     assert sorted(p.name for p in final.glob("eval_*")) == evals and len(read_results(final)) == 1
     with torch.no_grad():
         next(policy.parameters()).add_(1.0)                     # other weights: their results do not apply
-    save_final(tmp_path, policy)
+    save_final(tmp_path, policy, 200)
     assert read_results(final) == [] and not list(final.glob("eval_*"))

@@ -248,3 +248,19 @@ def test_training_on_the_lerobot_camera_fixture_uses_the_cameras():
     swapped = chunk(same)
     assert torch.equal(chunk(batch["images"])[0], swapped[0])                         # row 0 saw the same frame
     assert not torch.allclose(chunk(batch["images"])[1:], swapped[1:])                # rows 1, 2 saw other frames
+
+
+def test_backbone_built_for_a_checkpoint_keeps_batchnorm_frozen_without_a_train_call(pretrained_dir, tmp_path):
+    """Loading a checkpoint builds the ResNet from its config (load_pretrained=False), where transformers
+    leaves BatchNorm in train mode: its statistics must be frozen from construction on."""
+    path, _ = pretrained_dir
+    built = ActionDecoderPolicy(config(image_encoder="resnet18", image_encoder_pretrained=str(path)),
+                                load_pretrained=False)
+    bns = [m for m in built.model.image_encoder.backbone.modules() if isinstance(m, nn.BatchNorm2d)]
+    assert built.training and bns and not any(m.training for m in bns)
+    before = bns[0].running_mean.clone()
+    built.compute_loss({"state": torch.randn(4, 5), "actions": torch.randn(4, 8, 3), "images": frames(4)})
+    assert torch.equal(bns[0].running_mean, before)
+    built.save_pretrained(tmp_path / "c")
+    loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "c")
+    assert loaded.select_action({"state": torch.randn(1, 5), "images": frames(1)}).shape == (1, 3)

@@ -231,7 +231,7 @@ def test_losses_reject_wrong_shapes():
 
 @pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
 def test_clip_sample_bounds_the_x0_prediction(prediction_type):
-    cfg = DecoderConfig(prediction_type=prediction_type, clip_sample=True)
+    cfg = DecoderConfig(prediction_type=prediction_type, clip_sample=True, normalization_mode="min_max")
     alphas = inference_scheduler(cfg).alphas_cumprod
     far = GaussianMixture.make([[[5.0, -5.0]]], [0.1], dtype=torch.float64)   # data outside [−1, 1]
     noise = torch.randn(64, 1, 2, dtype=torch.float64)

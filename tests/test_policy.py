@@ -513,3 +513,107 @@ def test_camera_frames_are_encoded_once_per_chunk(decoder_type, sampler):
     policy.model.image_encoder.register_forward_hook(lambda *a: calls.append(1))
     policy.sample(camera_batch(), sampler=sampler, steps=4)
     assert len(calls) == 1
+
+
+def test_from_pretrained_returns_a_policy_ready_to_sample(tmp_path):
+    make().save_pretrained(tmp_path / "c")
+    loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "c")
+    assert not loaded.training and loaded(batch(actions=False)).actions.shape == (6, 8, 3)
+    assert loaded.train()(batch()).loss.dim() == 0
+
+
+def test_small_action_spreads_reach_the_network_at_unit_scale_and_constant_ones_take_the_floor():
+    stats = {"state": STATS["state"],
+             "actions": {"mean": [0.0, 0.0, 1.0], "std": [0.003, 0.0, 2e-7], "min": [-0.01, 0.0, 1.0],
+                         "max": [0.01, 0.0, 1.0]}}
+    policy = make(stats=stats)
+    a = torch.tensor([[0.003, 0.0, 1.0]])
+    torch.testing.assert_close(policy.normalizers["actions"].normalize(a), torch.tensor([[1.0, 0.0, 0.0]]))
+    half = make(stats=stats, normalization_mode="min_max").normalizers["actions"]
+    torch.testing.assert_close(half.normalize(torch.tensor([[0.01, 0.0, 1.0]])), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert float(policy.normalizers["state"].normalize(torch.full((1, 5), 1.02))[0, 0]) == pytest.approx(0.01)
+
+
+def test_checkpoint_of_format_5_keeps_flooring_every_action_spread_at_one_hundredth(tmp_path):
+    stats = {"state": STATS["state"], "actions": {**STATS["actions"], "std": [0.003, 0.2, 3.0]}}
+    make(stats=stats).save_pretrained(tmp_path / "c")
+    cfg = json.loads((tmp_path / "c" / "config.json").read_text())
+    del cfg["action_constant_below"]
+    (tmp_path / "c" / "config.json").write_text(json.dumps({**cfg, "format_version": 5}))
+    old = ActionDecoderPolicy.from_pretrained(tmp_path / "c")
+    assert old.config.action_constant_below == 1e-2
+    torch.testing.assert_close(old.normalizers["actions"].normalize(torch.tensor([[0.503, -0.5, 2.0]])),
+                               torch.tensor([[0.3, 0.0, 0.0]]))
+
+
+def test_statistics_stay_float32_when_the_policy_changes_dtype(tmp_path):
+    stats = {"state": {**STATS["state"], "mean": [250.3, 0.61, 1.57, 0.0, 0.0]},
+             "actions": STATS["actions"]}
+    policy = make(stats=stats).to(torch.bfloat16)
+    norm = policy.normalizers["state"]
+    assert norm.mean.dtype == torch.float32 and float(norm.mean[0]) == pytest.approx(250.3, abs=1e-4)
+    assert next(policy.model.parameters()).dtype == torch.bfloat16
+    policy.save_pretrained(tmp_path / "c")
+    assert float(ActionDecoderPolicy.from_pretrained(tmp_path / "c").normalizers["state"].mean[0]) == pytest.approx(250.3, abs=1e-4)
+
+
+@pytest.mark.parametrize("actions, match", [
+    ({"std": [-1.0, 0.2, 3.0]}, r"stats\['actions'\]\['std'\]: expected non-negative values"),
+    ({"min": [2.0, -1.0, -1.0]}, r"stats\['actions'\]: expected min <= max in every dimension"),
+])
+def test_impossible_statistics_are_refused(actions, match):
+    with pytest.raises(ValueError, match=match):
+        make(stats={"state": STATS["state"], "actions": {**STATS["actions"], **actions}})
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"context": "nan"}, r"batch\['context'\]: contains NaN or Inf at positions the context_mask keeps"),
+    ({"ctrl_freq": torch.tensor([10.0, float("nan"), 10, 10, 10, 10])}, r"batch\['ctrl_freq'\]: expected finite positive"),
+    ({"ctrl_freq": torch.tensor([10.0, -5.0, 10, 10, 10, 10])}, r"batch\['ctrl_freq'\]: expected finite positive"),
+    ({"attention_mask": torch.ones(6, 3, dtype=torch.bool)}, r"batch\['attention_mask'\]: masks batch\['vlm_key_values'\], which is missing; for context tokens use batch\['context_mask'\]"),
+    ({"context_mask": torch.ones(6, 3, dtype=torch.bool)}, r"batch\['context_mask'\]: masks batch\['context'\], which is missing"),
+    ({"state": torch.randn(0, 5), "actions": torch.randn(0, 8, 3)}, r"batch\['state'\]: expected at least one row"),
+])
+def test_conditioning_inputs_that_would_give_nan_or_be_ignored_are_refused(bad, match):
+    policy = make(context_dim=7)
+    ctx = torch.randn(6, 3, 7)
+    if bad.get("context") == "nan":
+        bad = {"context": ctx.clone()}
+        bad["context"][0, 1, 2] = float("nan")
+    with pytest.raises(ValueError, match=match):
+        policy({**batch(), **bad})
+    masked = ctx.clone()
+    masked[0, 2] = float("nan")               # a padded position may hold anything
+    mask = torch.ones(6, 3, dtype=torch.bool)
+    mask[0, 2] = False
+    assert torch.isfinite(policy({**batch(), "context": masked, "context_mask": mask}).loss)
+    assert torch.isfinite(policy({**batch(), "ctrl_freq": torch.full((6,), 20, dtype=torch.long)}).loss)
+
+
+def test_nan_in_a_used_vlm_layer_is_refused_but_not_under_the_mask():
+    policy = make(vlm_num_layers=2, vlm_head_dim=8, vlm_num_key_value_heads=2)
+    kv = [(torch.randn(6, 2, 5, 8), torch.randn(6, 2, 5, 8)) for _ in range(2)]
+    kv[1][0][0, 0, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"vlm_key_values: layer 1's K contains NaN or Inf at positions attention_mask keeps"):
+        policy({**batch(), "vlm_key_values": kv})
+    mask = torch.ones(6, 5, dtype=torch.bool)
+    mask[0, 3] = False
+    assert torch.isfinite(policy({**batch(), "vlm_key_values": kv, "attention_mask": mask}).loss)
+
+
+def test_chain_log_prob_refuses_a_chain_of_another_shape():
+    policy = make().eval()
+    b = batch(2, actions=False)
+    out = policy.sample(b, sampler="sde", return_logprob=True)
+    with pytest.raises(ValueError, match=r"chain: expected a stored SDE chain of shape \[2, K\+1, 8, 3\] .* got \[2, 5, 3, 3\]"):
+        policy.chain_log_prob(b, out.chain[:, :, :3], out.grid)
+    with pytest.raises(ValueError, match=r"chain: expected .* got \[1, 5, 8, 3\]"):
+        policy.chain_log_prob(b, out.chain[:1], out.grid)
+    with pytest.raises(ValueError, match=r"grid: expected the chain's time grid of shape \[5\]"):
+        policy.chain_log_prob(b, out.chain, out.grid[:-1])
+    torch.testing.assert_close(policy.chain_log_prob(b, out.chain, out.grid).sum(1), out.log_prob)
+
+
+def test_a_list_of_generators_for_the_loss_is_one_line():
+    with pytest.raises(ValueError, match=r"generator: the loss draws its times and noise from one torch.Generator"):
+        make()(batch(), generator=[torch.Generator()] * 6)

@@ -277,7 +277,7 @@ def test_eval_delay_rtc_runs_end_to_end_and_records_it(tmp_path, monkeypatch, ca
     args = ["eval", "--checkpoint", str(tmp_path / "ckpt"), "--episodes", "2", "--num-envs", "2", "--max-steps", "24"]
     assert cli.main(args + ["--delay", "2", "--rtc"]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1].startswith("success_rate=")
-    summary = json.loads((tmp_path / "ckpt" / "eval_ode_k1_n4_d2_rtc_seed0_t24.json").read_text())
+    summary = json.loads((tmp_path / "ckpt" / "eval_ode_k1_n4_d2_rtc_seed0_e2_t24.json").read_text())
     assert summary["delay"] == 2 and summary["rtc"] is True and summary["boundary_jerk"] > 0
     assert summary["results"][0]["boundaries"] == 2 * 10    # switches at 6, 10, .., 22: stencils centred k − 1, k
     assert cli.main(args + ["--delay", "5"]) == 2

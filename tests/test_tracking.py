@@ -133,10 +133,10 @@ def test_eval_writes_success_into_the_run_of_its_checkpoint(tmp_path):
     _bc().save_pretrained(run / "final")
     (run / "train_log.jsonl").write_text("".join(json.dumps({"step": s, "loss": 1.0}) + "\n" for s in (10, 20)))
     assert main(["eval", "--checkpoint", str(run / "final"), "--episodes", "1", "--num-envs", "1"]) == 0
-    summary = json.loads((run / "final" / "eval_ode_k2_n4_seed0.json").read_text())
+    summary = json.loads((run / "final" / "eval_ode_k2_n4_seed0_e1.json").read_text())
     events = scalars(run)
-    assert events["eval/ode_k2_n4_seed0/success_rate"] == [(20, summary["success_rate"])]
-    assert events["eval/ode_k2_n4_seed0/success/reach-v3"] == [(20, summary["per_task"]["reach-v3"])]
+    assert events["eval/ode_k2_n4_seed0_e1/success_rate"] == [(20, summary["success_rate"])]
+    assert events["eval/ode_k2_n4_seed0_e1/success/reach-v3"] == [(20, summary["per_task"]["reach-v3"])]
 
 
 def test_log_evaluation_places_scores_at_the_checkpoints_step(tmp_path):
@@ -208,3 +208,16 @@ def test_a_missing_tensorboard_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "tensorboard", None)
     with pytest.raises(ValueError, match=r'^tensorboard: .*pip install "tensorboard>=2.18"'):
         RunLogger(tmp_path, "train_log.jsonl")
+
+
+def test_final_is_logged_at_the_step_of_its_weights_not_the_runs_last_row(tmp_path):
+    from action_decoder.run_dir import save_final
+    from action_decoder.tracking import checkpoint_run
+
+    run = tmp_path / "run"
+    save_final(run, _bc(), 4)                                   # a finished 4-step run ...
+    (run / "train_log.jsonl").write_text("".join(json.dumps({"step": s}) + "\n" for s in (4, 1300)))  # ... resumed, stopped
+    assert checkpoint_run(run / "final") == (run, 4)
+    lone = tmp_path / "copied" / "final"                        # a final/ outside any run: events beside the summary
+    _bc().save_pretrained(lone)
+    assert checkpoint_run(lone) == (None, 0)

@@ -58,7 +58,7 @@ def test_eval_video_writes_a_grid_mp4_with_one_frame_per_observation(rendering, 
                "--sampler", "sde", "--steps", "3"], env, tmp_path)
     assert res.returncode == 0, res.stderr
     assert "Traceback" not in res.stderr and "Exception ignored" not in res.stderr, "renderers are closed"
-    stem = checkpoint / "eval_sde_k3_n8_seed0_t12"
+    stem = checkpoint / "eval_sde_k3_n8_seed0_e3_t12"
     video = stem.parent / f"{stem.name}_reach-v3.mp4"
     lines = res.stdout.strip().splitlines()
     assert f"video: {video}" in lines and lines[-1].startswith("success_rate=")
@@ -158,7 +158,7 @@ def test_an_unknown_camera_names_the_cameras_there_are():
     ({"video_size": 64}, "--video-size: take effect only with --video"),
     ({"video": True, "video_size": 100}, "--video-size: expected a multiple of 16"),
     ({"video": True, "video_episodes": 0}, "--video-episodes: expected an integer >= 1"),
-    ({"video": True, "video_fps": -1.0}, "--video-fps: expected a number >= 0"),
+    ({"video": True, "video_fps": -1.0}, "--video-fps: expected a number in \\[0, 1000\\]"),
     ({"max_steps": 0}, "--max-steps: expected 1..500"),
 ])
 def test_video_options_are_checked_before_any_episode(options, message):

@@ -77,7 +77,11 @@ def main(argv: list[str] | None = None) -> int:
               f"pip install \"action-decoder[sim]\"", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("action-decoder: interrupted; continue with --resume", file=sys.stderr)
+        if isinstance(cfg, (TrainConfig, FinetuneConfig)):
+            print("action-decoder: interrupted; continue from the last checkpoint with --resume", file=sys.stderr)
+        else:
+            print(f"action-decoder: interrupted; {type(cfg).__name__.removesuffix('Config').lower()} writes its "
+                  f"results at the end, so nothing was saved: run it again", file=sys.stderr)
         return 130
     finally:
         # A gloo group left for interpreter shutdown can abort the process (SIGABRT) at exit.

@@ -38,7 +38,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 5
+CONFIG_FORMAT_VERSION = 6
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -47,6 +47,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 0,
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
+    6: {"action_constant_below": 1e-2},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -157,6 +158,12 @@ class DecoderConfig:
     n_action_steps: int = 4     # of 16: re-planning every 4 actions instead of 8 took flow matching
                                 # from 72.4 to 80.4 % on nine hard Meta-World tasks (10 demos)
     normalization_mode: str = "mean_std"
+    # An action dimension whose spread (std for mean_std, half range for min_max) is below this
+    # is constant and is divided by the floor `normalize.SPREAD_FLOOR` (0.01) instead; any other
+    # keeps its own spread, so an end-effector delta of std 0.003 reaches the network at unit
+    # scale. State dimensions take the floor below 0.01. Format-5 files, older than the field,
+    # read as 0.01 (every action spread floored at 0.01).
+    action_constant_below: float = 1e-6
     state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
                                  # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0
@@ -199,6 +206,7 @@ class DecoderConfig:
                      "default_ctrl_freq"):
             _positive_float(name, getattr(self, name))
         _positive_float("meanflow_adaptive_p", self.meanflow_adaptive_p, allow_zero=True)
+        _positive_float("action_constant_below", self.action_constant_below, allow_zero=True)
         _finite("meanflow_time_mean", self.meanflow_time_mean)
         if not 0.0 <= self.meanflow_ratio_r_neq_t <= 1.0:
             raise ValueError(f"meanflow_ratio_r_neq_t: expected a fraction in [0, 1], "
@@ -221,6 +229,15 @@ class DecoderConfig:
         if any(v is not None for v in vlm) and any(v is None for v in vlm):
             raise ValueError("vlm_num_layers, vlm_head_dim, vlm_num_key_value_heads: expected all "
                              f"three set or all None, got {vlm}")
+        for name in ("clip_sample", "flow_sde_use", "flow_sde_learn_sigma", "flow_sde_return_logprob",
+                     "flow_sde_logprob_sigma_only"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+        if self.clip_sample and self.normalization_mode == "mean_std":
+            raise ValueError("clip_sample: clips DDPM's predicted chunk to [-1, 1], the range of "
+                             "normalization_mode='min_max' (or of an outside min-max normaliser with 'identity'); "
+                             "with normalization_mode='mean_std' it would cut every action beyond one std "
+                             "(set clip_sample=False or normalization_mode='min_max')")
         if self.flow_sde_use and self.decoder_type == "DDPM":
             raise ValueError("flow_sde_use: the SDE sampler serves flow_matching and mean_flow; "
                              "decoder_type='DDPM' samples with DPM-Solver (set flow_sde_use=False)")
@@ -229,6 +246,11 @@ class DecoderConfig:
                              f"{METAWORLD_STATE_DIM}-d state, got state_dim={self.state_dim}")
         if not isinstance(self.extra, dict):
             raise ValueError(f"extra: expected a dict, got {type(self.extra).__name__}")
+        try:
+            json.dumps(self.extra, sort_keys=True)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"extra: expected JSON data (string keys; lists, numbers, strings, bools, None), "
+                             f"saved in config.json; got {err}") from None
         self._validate_cameras()
 
     def _validate_cameras(self) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -39,8 +40,10 @@ class EvalConfig:
     task: Optional[str] = None
     """Task(s) to evaluate (default: those the policy was trained on)."""
     output: Optional[str] = None
-    """JSON summary path (default: <checkpoint>/eval_<sampler>_k<steps>_n<n_action_steps>_seed<seed>.json,
-    so evaluations with other settings, the one at the end of training included, are all kept)."""
+    """JSON summary path, or a directory for it (default: the checkpoint directory, as
+    eval_<sampler>_k<steps>_n<n_action_steps>_seed<seed>_e<episodes>.json plus the delay, RTC, episode
+    cap and tasks where they differ from the defaults, so evaluations with other settings, the one at
+    the end of training included, are all kept)."""
     plot: bool = False
     """Also plot the hand trajectories next to the JSON summary (same name, .png)."""
     max_steps: int = 500
@@ -62,6 +65,7 @@ class EvalConfig:
     """Frames per second (0: real time, one frame per env step: 80 for Meta-World)."""
     num_envs: int = 10
     device: str = "cpu"
+    """cpu, cuda, cuda:N, or auto (a GPU when there is one)."""
     wandb: bool = False
     """Also log the success rates to Weights & Biases (pip install "action-decoder[wandb]"). They always go
     to TensorBoard: in the checkpoint's run directory at its step, else next to the JSON summary."""
@@ -128,7 +132,8 @@ def run_eval(cfg: EvalConfig) -> dict:
         raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
                          f"got {cfg.max_steps}")
     check_video_options(cfg)
-    policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=cfg.device).eval()
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=device).eval()
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "
@@ -152,7 +157,8 @@ def run_eval(cfg: EvalConfig) -> dict:
 
         check_rendering()                  # before any env exists: MUJOCO_GL binds at mujoco's import
     steps = cfg.steps or None
-    generator = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
+    out = summary_path(cfg, policy, n_exec, steps, tasks, trained)
+    generator = torch.Generator(device=device).manual_seed(cfg.seed)
     fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
     results, videos = [], {}
     video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
@@ -193,16 +199,37 @@ def run_eval(cfg: EvalConfig) -> dict:
         "boundary_jerk": _mean_jerk(results),
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
-    cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
-    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
-    name = f"eval_{summary['sampler']}_k{summary['steps']}_n{n_exec}{timing}_seed{cfg.seed}{cap}.json"
-    out = Path(cfg.output) if cfg.output else Path(cfg.checkpoint) / name
     with video_dir:
         written = write_summary(summary, results if cfg.plot else None, out, videos)
     log_evaluation(summary, Path(cfg.checkpoint), written, cfg.wandb_project if cfg.wandb else None)
     update_card(Path(cfg.checkpoint), policy, summary, [r["task"] for r in results])
     print(f"success_rate={summary['success_rate']:.4f}", flush=True)
     return summary
+
+
+def summary_path(cfg: EvalConfig, policy: ActionDecoderPolicy, n_exec: int, steps: Optional[int], tasks: list,
+                 trained: list) -> Path:
+    """Where the summary goes: `--output` (a file, or a directory that gets the default name), else the
+    checkpoint directory under a name that holds every setting of a model-card row, so that no two
+    settings share a file: `eval_<sampler>_k<K>_n<n>[_d<delay>][_rtc]_seed<s>_e<episodes>[_t<cap>]
+    [_on-<tasks>].json` (`_on-`: tasks other than the trained ones)."""
+    from .envs import MAX_EPISODE_STEPS, canonical_task
+
+    cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
+    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
+    names = sorted(dict.fromkeys(canonical_task(t) for t in tasks))
+    if names == sorted(trained):
+        where = ""
+    elif len(names) <= 3:
+        where = "_on-" + "+".join(names)
+    else:
+        where = f"_on-{len(names)}tasks-" + hashlib.sha256(",".join(names).encode()).hexdigest()[:8]
+    name = (f"eval_{policy.resolve_sampler(cfg.sampler)}_k{policy.resolve_steps(cfg.sampler, steps)}_n{n_exec}"
+            f"{timing}_seed{cfg.seed}_e{cfg.episodes}{cap}{where}.json")
+    if not cfg.output:
+        return Path(cfg.checkpoint) / name
+    out = Path(cfg.output)
+    return out / name if out.is_dir() else out
 
 
 def policy_camera_rig(policy: ActionDecoderPolicy):
@@ -260,8 +287,8 @@ def check_video_options(cfg: EvalConfig) -> None:
     if not (16 <= cfg.video_size <= 2048 and cfg.video_size % 16 == 0):
         raise ValueError(f"--video-size: expected a multiple of 16 in [16, 2048] (H.264 macroblocks), "
                          f"got {cfg.video_size}")
-    if not cfg.video_fps >= 0:
-        raise ValueError(f"--video-fps: expected a number >= 0 (0: real time), got {cfg.video_fps}")
+    if not 0 <= cfg.video_fps <= 1000:
+        raise ValueError(f"--video-fps: expected a number in [0, 1000] (0: real time), got {cfg.video_fps}")
     from .envs.render import check_rendering
 
     check_rendering()

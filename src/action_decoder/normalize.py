@@ -8,8 +8,9 @@ import torch
 from torch import Tensor, nn
 
 STAT_NAMES = ("mean", "std", "min", "max")
-# Constant dimensions (Meta-World has several) must not blow up when divided by their spread.
-MIN_SPREAD = 1e-2
+# Constant dimensions (Meta-World has several) must not blow up when divided by their spread:
+# a spread below a feature's `constant_below` is replaced by this floor.
+SPREAD_FLOOR = 1e-2
 
 
 class Normalizer(nn.Module):
@@ -17,17 +18,22 @@ class Normalizer(nn.Module):
 
     mean_std: (x − mean)/std;  min_max: to [−1, 1] by 2·(x − min)/(max − min) − 1;
     identity: unchanged. Buffers hold every statistic so any mode can be reloaded.
+
+    A spread (std, or half the range) below `constant_below` marks a constant dimension and is
+    replaced by `SPREAD_FLOOR`. The statistics stay float32 whatever dtype the policy is moved to
+    (`.half()`, `.to(torch.bfloat16)`): rounding a mean of 250.3 to bf16 would shift every input.
     """
 
-    def __init__(self, name: str, dim: int, mode: str):
+    def __init__(self, name: str, dim: int, mode: str, constant_below: float = SPREAD_FLOOR):
         super().__init__()
-        self.name, self.dim, self.mode = name, dim, mode
+        self.name, self.dim, self.mode, self.constant_below = name, dim, mode, float(constant_below)
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("std", torch.ones(dim))
         self.register_buffer("min", -torch.ones(dim))
         self.register_buffer("max", torch.ones(dim))
 
     def set_stats(self, stats: Mapping[str, object]) -> None:
+        values = {}
         for key in STAT_NAMES:
             if key not in stats:
                 raise ValueError(f"stats[{self.name!r}]: expected keys {list(STAT_NAMES)}, "
@@ -38,13 +44,29 @@ class Normalizer(nn.Module):
                                  f"got shape {tuple(value.shape)}")
             if not torch.isfinite(value).all():
                 raise ValueError(f"stats[{self.name!r}][{key!r}]: contains NaN or Inf")
+            values[key] = value
+        if bool((values["std"] < 0).any()):
+            raise ValueError(f"stats[{self.name!r}]['std']: expected non-negative values, got {values['std'].tolist()}")
+        if bool((values["min"] > values["max"]).any()):
+            raise ValueError(f"stats[{self.name!r}]: expected min <= max in every dimension, got min "
+                             f"{values['min'].tolist()} and max {values['max'].tolist()}")
+        for key, value in values.items():
             getattr(self, key).copy_(value)
+
+    def _apply(self, fn, recurse=True):
+        # Follow the policy's device, never its dtype (see the class docstring).
+        for key, buf in self._buffers.items():
+            if buf is not None:
+                self._buffers[key] = buf.to(device=fn(buf).device, dtype=torch.float32)
+        return self
 
     def _scale_shift(self):
         if self.mode == "mean_std":
-            return self.std.clamp_min(MIN_SPREAD), self.mean
+            std = self.std
+            return torch.where(std < self.constant_below, torch.full_like(std, SPREAD_FLOOR), std), self.mean
         if self.mode == "min_max":
-            half = ((self.max - self.min) / 2).clamp_min(MIN_SPREAD / 2)
+            half = (self.max - self.min) / 2
+            half = torch.where(half < self.constant_below / 2, torch.full_like(half, SPREAD_FLOOR / 2), half)
             return half, (self.max + self.min) / 2
         return None, None
 
@@ -58,11 +80,13 @@ class Normalizer(nn.Module):
 
 
 def make_normalizers(state_dim: int, action_dim: int, mode: str,
-                     stats: Optional[Mapping[str, Mapping[str, object]]] = None) -> nn.ModuleDict:
+                     stats: Optional[Mapping[str, Mapping[str, object]]] = None,
+                     action_constant_below: float = SPREAD_FLOOR) -> nn.ModuleDict:
     """`{"state": ..., "actions": ...}`; `stats` uses those keys (or LeRobot's
-    "observation.state" / "action")."""
+    "observation.state" / "action"). State spreads below `SPREAD_FLOOR` take the floor; action
+    spreads only below `action_constant_below` (`DecoderConfig.action_constant_below`)."""
     norms = nn.ModuleDict({"state": Normalizer("state", state_dim, mode),
-                           "actions": Normalizer("actions", action_dim, mode)})
+                           "actions": Normalizer("actions", action_dim, mode, action_constant_below)})
     if stats is not None:
         aliases = {"state": ("state", "observation.state"), "actions": ("actions", "action")}
         for key, names in aliases.items():

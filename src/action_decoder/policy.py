@@ -79,7 +79,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         self.config = config
         self.model = ActionExpert(config, load_pretrained)
         self.normalizers = make_normalizers(config.state_dim, config.action_dim,
-                                            config.normalization_mode, stats)
+                                            config.normalization_mode, stats, config.action_constant_below)
         # The noise schedule is a submodule so that a learnable σ is a policy parameter.
         self.sigma = make_sigma(config)
         self._queue: deque = deque()
@@ -95,6 +95,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             raise ValueError(f"batch['state']: expected shape [B, {cfg.state_dim}], got {list(state.shape)}")
         _finite(state, "state")
         b = state.shape[0]
+        if b == 0:
+            raise ValueError(f"batch['state']: expected at least one row [B >= 1, {cfg.state_dim}], got {list(state.shape)}")
         if need_actions:
             shape = [b, cfg.action_chunk_size, cfg.action_dim]
             actions = _tensor(batch, "actions", str(shape))
@@ -106,6 +108,9 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if not isinstance(f, Tensor) or list(f.shape) != [b]:
                 got = list(f.shape) if isinstance(f, Tensor) else type(f).__name__
                 raise ValueError(f"batch['ctrl_freq']: expected a tensor of shape [{b}], got {got}")
+            if f.dtype == torch.bool or not bool((torch.isfinite(f.double()) & (f > 0)).all()):
+                raise ValueError(f"batch['ctrl_freq']: expected finite positive control frequencies in Hz, got "
+                                 f"{f.tolist() if f.numel() <= 8 else f'{f.dtype} values outside (0, inf)'}")
         if batch.get("context") is not None:
             ctx = batch["context"]
             want = f"[{b}, L, {cfg.context_dim}]"
@@ -119,6 +124,15 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if mask is not None and (not isinstance(mask, Tensor) or list(mask.shape) != list(ctx.shape[:2])):
                 got = list(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
                 raise ValueError(f"batch['context_mask']: expected shape {list(ctx.shape[:2])}, got {got}")
+            keep = ctx if mask is None else ctx[mask.to(torch.bool)]
+            if not bool(torch.isfinite(keep).all()):
+                raise ValueError(f"batch['context']: contains NaN or Inf at positions the context_mask keeps "
+                                 f"(shape {list(ctx.shape)})")
+        for key, pairs in (("context_mask", "context"), ("attention_mask", "vlm_key_values")):
+            if batch.get(key) is not None and batch.get(pairs) is None:
+                other = {"context_mask": "batch['attention_mask'] pairs with vlm_key_values",
+                         "attention_mask": "for context tokens use batch['context_mask']"}[key]
+                raise ValueError(f"batch[{key!r}]: masks batch[{pairs!r}], which is missing; {other}")
         self._validate_images(batch, b)
         tasks = cfg.extra.get("tasks")
         tasks = list(tasks) if isinstance(tasks, (list, tuple)) else []
@@ -224,6 +238,9 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
         self._validate(batch, need_actions=True)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise ValueError(f"generator: the loss draws its times and noise from one torch.Generator (or None), "
+                             f"got {type(generator).__name__} (per-row generators are for sampling)")
         cond = self._prepare(batch)
         actions = self.normalizers["actions"].normalize(batch["actions"].to(cond["state"].device, torch.float32))
         cfg = self.config
@@ -416,6 +433,16 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         `meanflow_velocity` as for `sample` (use the choice that sampled the chain)."""
         if self.config.decoder_type == "DDPM":
             raise ValueError("chain_log_prob: needs a flow_matching or mean_flow decoder, got DDPM")
+        cfg, b = self.config, batch["state"].shape[0] if isinstance(batch.get("state"), Tensor) else None
+        want = f"[{b if b is not None else 'B'}, K+1, {cfg.action_chunk_size}, {cfg.action_dim}]"
+        if not isinstance(chain, Tensor) or chain.dim() != 4 or chain.shape[0] != b or \
+                tuple(chain.shape[2:]) != (cfg.action_chunk_size, cfg.action_dim):
+            got = list(chain.shape) if isinstance(chain, Tensor) else type(chain).__name__
+            raise ValueError(f"chain: expected a stored SDE chain of shape {want} (batch, grid points, "
+                             f"action_chunk_size, action_dim), got {got}")
+        if not isinstance(grid, Tensor) or list(grid.shape) != [chain.shape[1]]:
+            got = list(grid.shape) if isinstance(grid, Tensor) else type(grid).__name__
+            raise ValueError(f"grid: expected the chain's time grid of shape [{chain.shape[1]}] (K+1), got {got}")
         return chain_log_prob(self.bind(batch, meanflow_velocity).flow_velocity, chain, self.sigma, grid=grid,
                               clip_t=self.config.flow_sde_clip_t, reduce=reduce)
 
@@ -459,7 +486,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     def save_pretrained(self, save_directory: str | Path, *, config: Any = None, repo_id: Optional[str] = None,
                         push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,
                         **push_to_hub_kwargs) -> Optional[str]:
-        """`config.json` (format_version 2, every DecoderConfig field) + `model.safetensors` (weights,
+        """`config.json` (the current format_version, every DecoderConfig field) + `model.safetensors` (weights,
         normalisation stats, learnable σ) + `README.md` (the model card, `model_card.py`): the layout
         `PyTorchModelHubMixin` reads and `push_to_hub` uploads (`push_to_hub=True` uploads to `repo_id`,
         default the directory's name; returns the commit's url). The card keeps the measured results
@@ -496,7 +523,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                         local_files_only: bool = False) -> "ActionDecoderPolicy":
         """Load a directory written by `save_pretrained`, or a Hub repo id (`owner/name`, fetched with
         `huggingface_hub.snapshot_download`; `revision`, `cache_dir`, `token`... go to it) when no such
-        local directory exists. An unreachable Hub or unknown repo is one ValueError line."""
+        local directory exists. An unreachable Hub or unknown repo is one ValueError line. The policy
+        comes back in eval() mode, ready to sample (call .train() to train on)."""
         from safetensors import SafetensorError
         from safetensors.torch import load_file
 
@@ -523,7 +551,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         results = model_card.read_results(path)
         # The measured results of these weights, so that saving (or pushing) them again keeps them.
         policy._card_results = model_card.carried_results(results, model_card.weights_digest(tensors)) if results else []
-        return policy.to(map_location)
+        return policy.to(map_location).eval()   # ready to sample, as the Hub mixin returns models; .train() to train on
 
 
 HUB_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")

@@ -40,6 +40,9 @@ def run_record(cfg: RecordConfig) -> Path:
         raise ValueError(f"--demos: expected an integer >= 1 (demonstrations per task), got {cfg.demos!r}")
     if isinstance(cfg.image_size, bool) or not isinstance(cfg.image_size, int) or cfg.image_size < 8:
         raise ValueError(f"--image-size: expected an integer >= 8 (pixels), got {cfg.image_size!r}")
+    if not cfg.cameras and cfg.image_size != RecordConfig.image_size:
+        raise ValueError(f"--image-size: sizes the frames of --cameras, which was not given (got "
+                         f"--image-size {cfg.image_size}); add --cameras corner2 (or others) or drop it")
     root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
                         image_size=cfg.image_size)
     info = json.loads((root / "meta" / "info.json").read_text())

@@ -31,6 +31,9 @@ from .policy import ActionDecoderPolicy
 
 CKPT_DIR, LAST, FINAL, LOCK = "checkpoints", "last", "final", ".lock"
 STATE_JSON, STATE_TENSORS = "training_state.json", "training_state.safetensors"
+LOG_FILES = ("train_log.jsonl", "finetune_log.jsonl")
+FINAL_STEP = "step.json"
+"""In `final/`: {"step": N}, the logged step its weights come from (train: optimizer steps; finetune: env steps)."""
 LEGACY_STATE = "training_state.pt"
 STATE_FORMAT = "action-decoder training state 1"
 
@@ -165,9 +168,10 @@ def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
     return final
 
 
-def save_final(out: Path, policy) -> Path:
-    """`out/final` in `save_pretrained` format, replaced atomically. When the weights are those the
-    old `final/` holds (a finished run resumed), its measured results and evaluation files stay."""
+def save_final(out: Path, policy, step: int) -> Path:
+    """`out/final` in `save_pretrained` format with `FINAL_STEP` (the logged `step` of these weights),
+    replaced atomically. When the weights are those the old `final/` holds (a finished run resumed),
+    its measured results and evaluation files stay."""
     final, tmp = out / FINAL, out / ".tmp_final"
     with _writing(final, out, tmp):
         shutil.rmtree(tmp, ignore_errors=True)
@@ -178,6 +182,7 @@ def save_final(out: Path, policy) -> Path:
             policy.save_pretrained(tmp)
         finally:
             policy._card_results = before
+        (tmp / FINAL_STEP).write_text(json.dumps({"step": int(step)}) + "\n")
         if same:                                    # eval_*.json / .png / .mp4 of these weights
             for path in final.iterdir():
                 if path.is_file() and not (tmp / path.name).exists():
@@ -218,6 +223,17 @@ def run_dir_lock(out: Path, option: str = "--output-dir"):
         yield out
     finally:
         os.close(fd)
+
+
+def existing_run(out: Path) -> Optional[str]:
+    """What in `out` shows an earlier training or fine-tuning run (a checkpoint, `final/`, a run log),
+    or None: a new run must not write over it."""
+    if last_checkpoint(out) is not None or (out / CKPT_DIR / LAST).exists():
+        return f"checkpoints in {out / CKPT_DIR}"
+    if (out / FINAL).exists():
+        return f"a final policy {out / FINAL}"
+    logs = [out / name for name in LOG_FILES if (out / name).is_file() and (out / name).stat().st_size > 0]
+    return f"the run log {logs[0]}" if logs else None
 
 
 def last_checkpoint(out: Path) -> Optional[Path]:

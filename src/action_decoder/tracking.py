@@ -16,9 +16,8 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from .run_dir import CKPT_DIR, FINAL, _writing
+from .run_dir import CKPT_DIR, FINAL, FINAL_STEP, LOG_FILES, _writing
 
-LOG_FILES = ("train_log.jsonl", "finetune_log.jsonl")
 """The JSON-lines logs of `train` and `finetune`, in their run directories."""
 WANDB_ID_FILE = "wandb_run_id"
 
@@ -140,9 +139,10 @@ class RunLogger:
 
 
 def checkpoint_run(checkpoint: Path) -> tuple[Optional[Path], int]:
-    """The run directory a checkpoint belongs to and the step it holds: `<run>/final` is at the run's
-    last logged step, `<run>/checkpoints/step_N` at its N-th step (finetune: N-th iteration, at that
-    iteration's env steps). (None, 0) for a checkpoint outside a run directory."""
+    """The run directory a checkpoint belongs to and the step it holds: `<run>/final` at the step its
+    `FINAL_STEP` file names (a `final/` without one: the run's last logged step), `<run>/checkpoints/step_N`
+    at its N-th step (finetune: N-th iteration, at that iteration's env steps). (None, 0) for a
+    checkpoint outside a run directory, or a `final/` beside no run log."""
     ckpt = Path(checkpoint).absolute()
     if ckpt.name == FINAL:
         run_dir, index = ckpt.parent, None
@@ -152,7 +152,10 @@ def checkpoint_run(checkpoint: Path) -> tuple[Optional[Path], int]:
         return None, 0
     rows = next((rows for rows in (read_jsonl(run_dir / name) for name in LOG_FILES) if rows), [])
     if index is None:
-        return run_dir, int(rows[-1]["step"]) if rows else 0
+        try:
+            return run_dir, int(json.loads((ckpt / FINAL_STEP).read_text())["step"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return (run_dir, int(rows[-1]["step"])) if rows else (None, 0)
     return run_dir, next((int(r["step"]) for r in rows if r.get("iteration", r.get("step")) == index), index)
 
 

@@ -24,7 +24,7 @@ from torch.utils.data import default_collate
 
 from .config import DecoderConfig
 from .policy import ActionDecoderPolicy
-from .run_dir import (CKPT_DIR, FINAL, LAST, _rng_state, _set_rng_state, _writing, last_checkpoint, resume_checkpoint,
+from .run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, _writing, existing_run, resume_checkpoint,
                       run_dir_lock, save_final, write_checkpoint)
 from .state_layout import shift_positions
 from .tracking import RunLogger, require_wandb
@@ -492,12 +492,15 @@ def _resume(cfg: TrainConfig, out: Path, device: torch.device, main: bool):
     """Before any data is loaded: the checkpoint to continue from, checked against `cfg`
     (None: start at step 0)."""
     if not cfg.resume:
-        if main and (last_checkpoint(out) is not None or (out / CKPT_DIR / LAST).exists()):
-            raise ValueError(f"--output-dir: {out} already holds a training run; pass --resume to continue it "
-                             f"or choose another directory")
+        if main and (held := existing_run(out)) is not None:
+            raise ValueError(f"--output-dir: {out} already holds a training run ({held}); pass --resume to "
+                             f"continue it or choose another directory")
         return None
     found = resume_checkpoint(out, device)
     if found is None:
+        if main and (held := existing_run(out)) is not None:
+            raise ValueError(f"--resume: {out} holds a run ({held}) but no checkpoint to continue from; "
+                             f"choose another --output-dir, or move that run away to start anew")
         if main:
             print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from step 0", flush=True)
         return None
@@ -624,7 +627,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     final = out / FINAL
     if main:
         trained = policy if ema is None else ema.module
-        save_final(out, trained)
+        save_final(out, trained, cfg.steps)
         log = {"config": asdict(cfg), "history": history}
         if val is not None:
             log["validation"] = validation_metrics(trained, val, len(tasks), device)

@@ -202,10 +202,12 @@ def record_episodes(
             rig.close()
         env.close()
     if len(episodes) < num_episodes:
-        raise RuntimeError(
-            f"{name}: the scripted expert succeeded in {len(episodes)} of {len(seeds)} attempts, fewer than "
-            f"the {num_episodes} demonstrations asked for; raise max_attempts_factor"
-            + (f" or lower the action noise ({action_noise})" if action_noise > 0 else "")
+        raise ValueError(
+            f"--demos: the scripted expert of {name} succeeded in {len(episodes)} of {len(seeds)} attempts (layouts "
+            f"of --seed {seed}, max_attempts_factor {max_attempts_factor:g}), fewer than the {num_episodes} "
+            f"demonstrations asked for; ask for fewer, try another --seed"
+            + (f" or lower the recording noise (now {action_noise:g}: record's --action-noise, train's "
+               f"--demo-noise)" if action_noise > 0 else "")
         )
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
@@ -231,7 +233,7 @@ def generate_demos(
     Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>][-cam<a+b>-px<size>]`` when complete. A complete cache in
     the older v2.0 layout is converted in place (same episodes, no simulator run), saying so in one
     line; anything else is recorded anew. New datasets are written into a temporary sibling and
-    renamed into place (concurrent runs never see a partial dataset). Raises RuntimeError if
+    renamed into place (concurrent runs never see a partial dataset). Raises ValueError if
     ``ceil(N * max_attempts_factor)`` attempts do not yield N successes.
     """
     cameras = camera_names(cameras)

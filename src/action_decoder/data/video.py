@@ -21,7 +21,8 @@ def _av():
     try:
         import av
     except ImportError:
-        raise ValueError("camera features: decoding video needs PyAV: pip install \"action-decoder[video]\"") from None
+        raise ValueError("camera features: reading and writing camera video needs PyAV: "
+                         "pip install \"action-decoder[video]\"") from None
     return av
 
 

@@ -164,6 +164,10 @@ class ConditioningEncoder(nn.Module):
             if k.shape != k0.shape or v.shape != k0.shape:
                 raise ValueError(f"vlm_key_values: layer {j} has K {list(k.shape)}, V {list(v.shape)}; "
                                  f"expected {list(k0.shape)} like layer 0")
+            for name, x in (("K", k), ("V", v)):
+                if not bool(torch.isfinite(x[mask[:, None, :, None].expand_as(x)]).all()):
+                    raise ValueError(f"vlm_key_values: layer {j}'s {name} contains NaN or Inf at positions "
+                                     f"attention_mask keeps (shape {list(x.shape)})")
             keys.append(self._project(self.vlm_k_proj[i], k, mask))
             values.append(self._project(self.vlm_v_proj[i], v, mask))
         return tuple(keys), tuple(values), mask

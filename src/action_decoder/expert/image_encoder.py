@@ -115,6 +115,7 @@ class ResNet18Backbone(nn.Module):
         if not self.frozen_batch_norm:
             _swap_batch_norm(self.resnet)
         self.out_channels = RESNET18["hidden_sizes"][-1]
+        self.train(self.training)       # a ResNet built from its config starts with BatchNorm in train mode
 
     def train(self, mode: bool = True) -> "ResNet18Backbone":
         super().train(mode)

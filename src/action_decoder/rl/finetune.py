@@ -22,7 +22,7 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..policy import ActionDecoderPolicy
-from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, last_checkpoint, load_state, run_dir_lock,
+from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
                        save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
@@ -363,11 +363,14 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         _set_rng_state(st["rng"])
         iteration, env_steps, history, evals = st["iteration"], st["env_steps"], st["history"], st["evals"]
         print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps)", flush=True)
+    elif (held := existing_run(out)) is not None:
+        if cfg.resume:
+            raise ValueError(f"--resume: {out} holds a run ({held}) but no checkpoint to continue from; "
+                             f"choose another --output-dir, or move that run away to start anew")
+        raise ValueError(f"--output-dir: {out} already holds a fine-tuning run ({held}); pass --resume to "
+                         f"continue it or choose another directory")
     elif cfg.resume:
         print(f"resume: no checkpoint in {out / CKPT_DIR}; starting from the BC policy", flush=True)
-    elif last_checkpoint(out) is not None:
-        raise ValueError(f"--output-dir: {out} already holds a fine-tuning run; pass --resume to continue it "
-                         f"or choose another directory")
 
     logger = RunLogger(out, "finetune_log.jsonl", env_steps, cfg.wandb_project if cfg.wandb else None, "finetune",
                        asdict(cfg))
@@ -470,7 +473,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         run_eval()
     for env in envs:
         env.close()
-    final = save_final(out, policy)
+    final = save_final(out, policy, env_steps)
     logger.close()
     (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
                                                        "evals": evals}, indent=1))
