@@ -118,6 +118,23 @@ def test_to_core_batch_rejects_bad_input_in_one_line(batch, match):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("over, match", [
+    ({"observation.state": torch.full((2, 6), float("nan"))}, r"^batch\['observation.state'\]: contains NaN or Inf"),
+    ({"observation.state": torch.zeros(2, 6, dtype=torch.long)}, r"^batch\['observation.state'\]: expected a floating-point"),
+    ({"action": torch.randn(2, 8, 4)}, r"^batch\['action'\]: expected shape \[2, 8, 3\] \(batch, chunk_size, action dim\), got \[2, 8, 4\]"),
+    ({"action": torch.randn(2, 5, 3)}, r"^batch\['action'\]: expected shape \[2, 8, 3\]"),
+    ({"action": torch.full((2, 8, 3), float("inf"))}, r"^batch\['action'\]: contains NaN or Inf"),
+])
+def test_bad_training_batches_name_lerobots_keys(over, match):
+    batch = {"observation.state": torch.randn(2, 6), "action": torch.randn(2, 8, 3), **over}
+    with pytest.raises(ValueError, match=match):
+        convert.to_core_batch(batch, [], 6, True, action_shape=(8, 3))
+
+
+def test_meanflow_target_reaches_the_core_config():
+    assert convert.decoder_config(plugin_cfg(decoder_type="mean_flow", meanflow_target="split"), 6, 3).meanflow_target == "split"
+
+
 CAM_KEYS = ["observation.images.wrist", "observation.images.top"]
 
 
@@ -146,6 +163,13 @@ def test_camera_frames_are_stacked_in_config_order_and_resized():
     torch.testing.assert_close(images[:, 0].mean((-1, -2)), wrist.mean((-1, -2)), atol=0.02, rtol=0)
     assert 0 <= float(images.min()) and float(images.max()) <= 1
     assert "images" not in convert.to_core_batch({"observation.state": torch.randn(2, 6)}, [], 6, False)
+
+
+def test_camera_frames_outside_unit_range_are_refused_before_resizing_hides_them():
+    batch = {"observation.state": torch.randn(2, 6), "observation.images.wrist": torch.rand(2, 3, 16, 16),
+             "observation.images.top": torch.randn(2, 3, 32, 32) * 3}         # mean-std normalised frames
+    with pytest.raises(ValueError, match=r"^batch\['observation.images.top'\]: expected pixels in \[0, 1\]"):
+        convert.to_core_batch(batch, [], 6, False, CAM_KEYS, 16)
 
 
 @pytest.mark.parametrize("frames, match", [
@@ -349,3 +373,48 @@ def test_lerobot_policy_encodes_its_cameras_and_names_inputs_it_does_not_use(cap
     loss, _ = policy.forward(batch)
     loss.backward()
     assert policy.decoder.model.image_encoder.proj.weight.grad.abs().sum() > 0
+
+
+@lerobot_only
+def test_lerobot_predict_action_chunk_returns_a_chunk_whatever_flow_sde_return_logprob_says(toy_root):
+    policy, pre, _, _ = _lerobot_policy(toy_root, flow_sde_use=True, flow_sde_return_logprob=True)
+    obs = pre({"observation.state": torch.randn(6), "task": "lift the cube"})
+    chunk = policy.eval().predict_action_chunk(obs)
+    assert isinstance(chunk, torch.Tensor) and chunk.shape == (1, 8, 3)
+
+
+@lerobot_only
+def test_lerobot_config_refuses_normalised_camera_frames():
+    from lerobot.configs.types import NormalizationMode
+
+    from lerobot_policy_action_decoder import ActionDecoderConfig
+
+    mapping = {"VISUAL": NormalizationMode.MEAN_STD, "STATE": NormalizationMode.MEAN_STD,
+               "ACTION": NormalizationMode.MEAN_STD}
+    with pytest.raises(ValueError, match=r"^policy.normalization_mapping: expected VISUAL: IDENTITY"):
+        ActionDecoderConfig(device="cpu", normalization_mapping=mapping)
+
+
+@lerobot_only
+def test_lerobot_single_task_policy_refuses_a_dataset_of_other_tasks(toy_root):
+    with pytest.raises(ValueError, match=r"^policy.tasks: the dataset's tasks \['lift the cube'\] are not among"):
+        _lerobot_policy(toy_root, tasks=["push the block"])
+
+
+@lerobot_only
+def test_lerobot_reload_builds_the_core_policy_without_its_pretrained_encoder_source(toy_root, tmp_path, monkeypatch):
+    from lerobot_policy_action_decoder import ActionDecoderPolicy, modeling_action_decoder
+
+    policy, _, _, _ = _lerobot_policy(toy_root)
+    policy.save_pretrained(tmp_path / "ckpt")
+    seen = []
+    real = modeling_action_decoder.CorePolicy
+
+    def recording(config, load_pretrained=True):
+        seen.append(load_pretrained)
+        return real(config, load_pretrained=load_pretrained)
+
+    monkeypatch.setattr(modeling_action_decoder, "CorePolicy", recording)
+    ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt")
+    ActionDecoderPolicy(policy.config)
+    assert seen == [False, True]

@@ -57,6 +57,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     meanflow_ratio_r_neq_t: float = 0.25
     meanflow_time_dist: str = "uniform"
     meanflow_adaptive_p: float = 0.5
+    meanflow_target: str = "identity"
     # Action Expert
     hidden_size: int = 96
     num_hidden_layers: int = 3
@@ -93,6 +94,10 @@ class ActionDecoderConfig(PreTrainedConfig):
         if self.n_obs_steps != 1:
             raise ValueError(f"policy.n_obs_steps: expected 1 (the decoder reads the current state), "
                              f"got {self.n_obs_steps}")
+        visual = self.normalization_mapping.get("VISUAL", NormalizationMode.IDENTITY)
+        if visual != NormalizationMode.IDENTITY:
+            raise ValueError(f"policy.normalization_mapping: expected VISUAL: IDENTITY (the image encoder takes "
+                             f"pixels in [0, 1] and normalises them itself), got VISUAL: {getattr(visual, 'value', visual)}")
         decoder_config(self, state_dim=1, action_dim=1)     # raises on a bad value, naming the field
 
     def get_optimizer_preset(self) -> AdamWConfig:

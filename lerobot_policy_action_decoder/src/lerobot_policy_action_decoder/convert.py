@@ -28,6 +28,7 @@ SHARED = ("decoder_type", "n_action_steps", "flow_sde_num_steps", "num_train_tim
           "beta_schedule", "clip_sample", "flow_sde_use", "flow_sde_mode", "flow_sde_s_churn",
           "flow_sde_learn_sigma", "flow_sde_sigma_init", "flow_sde_return_logprob", "flow_sde_logprob_sigma_only",
           "meanflow_sde_velocity", "meanflow_ratio_r_neq_t", "meanflow_time_dist", "meanflow_adaptive_p",
+          "meanflow_target",
           "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads",
           "image_size", "image_encoder", "image_tokens_per_camera", "image_encoder_pretrained",
           "freeze_image_encoder", "image_shift")
@@ -157,6 +158,10 @@ def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: i
             raise ValueError(f"batch[{key!r}]: expected camera frames of shape [{batch_size}, 3, H, W] (float in "
                              f"[0, 1]), got {got}")
         x = x.float() / 255.0 if not x.is_floating_point() else x.float()
+        low, high = float(x.min()), float(x.max())
+        if not (0.0 <= low and high <= 1.0):              # NaN fails too
+            raise ValueError(f"batch[{key!r}]: expected pixels in [0, 1] (uint8 0..255, or float with the VISUAL "
+                             f"normalisation IDENTITY), got values in [{low:.4g}, {high:.4g}]")
         if tuple(x.shape[-2:]) != (image_size, image_size):
             x = F.interpolate(x, size=(image_size, image_size), mode="bilinear", antialias=True,
                               align_corners=False).clamp(0.0, 1.0)
@@ -164,11 +169,21 @@ def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: i
     return torch.stack(frames, dim=1)                                                     # [B, N_cam, 3, S, S]
 
 
+def _finite_float(x: Tensor, key: str) -> None:
+    """Checked here, where LeRobot's key is known (the core would name its own key)."""
+    if not x.is_floating_point():
+        raise ValueError(f"batch[{key!r}]: expected a floating-point tensor, got {x.dtype}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"batch[{key!r}]: contains NaN or Inf (shape {list(x.shape)})")
+
+
 def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int,
-                  with_actions: bool, cameras: Sequence[str] = (), image_size: int = 64) -> dict:
+                  with_actions: bool, cameras: Sequence[str] = (), image_size: int = 64,
+                  action_shape: Optional[tuple[int, int]] = None) -> dict:
     """LeRobot batch → core batch: `state` [B, S], `actions` [B, H, D] (padding held at the last
     real action) when `with_actions`, `images` [B, N_cam, 3, S, S] for a camera policy
-    (`camera_batch`), and the task token `context` [B, 1, T] for multi-task."""
+    (`camera_batch`), and the task token `context` [B, 1, T] for multi-task. `action_shape` (H, D)
+    checks the chunk's shape here, naming LeRobot's key."""
     state = batch.get(STATE)
     if not isinstance(state, Tensor):
         raise ValueError(f"batch[{STATE!r}]: missing; expected a tensor of shape [B, {state_dim}], got "
@@ -177,6 +192,7 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
         state = state[:, 0]                                                               # [B, 1, S] -> [B, S]
     if state.dim() != 2 or state.shape[1] != state_dim:
         raise ValueError(f"batch[{STATE!r}]: expected shape [B, {state_dim}], got {list(state.shape)}")
+    _finite_float(state, STATE)
     out = {"state": state}
     if with_actions:
         actions = batch.get(ACTION)
@@ -184,6 +200,11 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
             got = list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__
             raise ValueError(f"batch[{ACTION!r}]: expected an action chunk of shape [B, H, D] (action_delta_indices "
                              f"give H steps), got {got}")
+        want = [state.shape[0], *(action_shape or actions.shape[1:])]
+        if list(actions.shape) != want:
+            raise ValueError(f"batch[{ACTION!r}]: expected shape {want} (batch, chunk_size, action dim), "
+                             f"got {list(actions.shape)}")
+        _finite_float(actions, ACTION)
         out["actions"] = hold_last_action(actions, batch.get(PAD))
     if cameras:
         out["images"] = camera_batch(batch, cameras, image_size, state.shape[0])

@@ -10,6 +10,7 @@ are converted at the boundary (`convert.to_core_batch`): `observation.state` →
 
 from __future__ import annotations
 
+import contextvars
 import logging
 from typing import Any, Optional
 
@@ -22,6 +23,11 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .configuration_action_decoder import ActionDecoderConfig
 from .convert import camera_keys, decoder_config, feature_dims, task_list, to_core_batch, unused_inputs, unused_inputs_message
+
+
+# True while `from_pretrained` builds the policy: the checkpoint brings every weight, so a pretrained
+# image encoder is not read again from its source (which an offline robot may not reach).
+_FROM_CHECKPOINT = contextvars.ContextVar("action_decoder_from_checkpoint", default=False)
 
 
 class ActionDecoderPolicy(PreTrainedPolicy):
@@ -41,18 +47,35 @@ class ActionDecoderPolicy(PreTrainedPolicy):
                  dataset_meta: Any = None, **kwargs: Any):
         super().__init__(config)
         config.validate_features()
-        if not config.tasks and dataset_meta is not None:
-            config.tasks = task_list(getattr(dataset_meta, "tasks", None))
+        data_tasks = task_list(getattr(dataset_meta, "tasks", None)) if dataset_meta is not None else []
+        if not config.tasks:
+            config.tasks = data_tasks
+        elif len(data_tasks) > 1 and not set(data_tasks) <= set(config.tasks):
+            raise ValueError(f"policy.tasks: the dataset's tasks {sorted(set(data_tasks) - set(config.tasks))} are "
+                             f"not among the {len(config.tasks)} this policy conditions on {list(config.tasks)}; its "
+                             f"task token is fixed when it is built: train a new policy on this dataset")
         self.state_dim, action_dim = feature_dims(config.input_features, config.output_features)
+        self.action_shape = (config.chunk_size, action_dim)
         message = unused_inputs_message(unused_inputs(config.input_features))
         if message:
             logging.warning(message)
         self.cameras = camera_keys(config.input_features)
-        self.decoder = CorePolicy(decoder_config(config, self.state_dim, action_dim, self.cameras))
+        self.decoder = CorePolicy(decoder_config(config, self.state_dim, action_dim, self.cameras),
+                                  load_pretrained=not _FROM_CHECKPOINT.get())
+
+    @classmethod
+    def from_pretrained(cls, *args: Any, **kwargs: Any) -> "ActionDecoderPolicy":
+        """LeRobot's `from_pretrained`, building the core policy without reading a pretrained image
+        encoder's source: the checkpoint holds its weights."""
+        token = _FROM_CHECKPOINT.set(True)
+        try:
+            return super().from_pretrained(*args, **kwargs)
+        finally:
+            _FROM_CHECKPOINT.reset(token)
 
     def _core(self, batch: dict[str, Any], with_actions: bool) -> dict:
         return to_core_batch(batch, self.config.tasks, self.state_dim, with_actions, self.cameras,
-                             self.config.image_size)
+                             self.config.image_size, self.action_shape)
 
     def get_optim_params(self) -> list:
         return [p for p in self.parameters() if p.requires_grad]
@@ -69,11 +92,12 @@ class ActionDecoderPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Any], sampler: Optional[str] = None,
-                             steps: Optional[int] = None, return_logprob: Optional[bool] = None,
+                             steps: Optional[int] = None, return_logprob: bool = False,
                              generator=None, noise: Optional[Tensor] = None,
                              meanflow_velocity: Optional[str] = None):
         """A chunk [B, H, D] in normalised units (LeRobot's postprocessor un-normalises), or the
-        core `PolicyOutput` when log-probs are returned (`sampler="sde", return_logprob=True`)."""
+        core `PolicyOutput` when log-probs are asked for (`sampler="sde", return_logprob=True`;
+        `flow_sde_return_logprob` does not change what this returns)."""
         return self.decoder.predict_action_chunk(self._core(batch, with_actions=False), sampler, steps,
                                                  return_logprob, generator, noise, meanflow_velocity)
 
