@@ -324,6 +324,9 @@ def test_rollout_runs_past_success_for_the_dense_reward():
         assert bool(ro.terminal.any()) is stop and bool(ro.success[-1])
         assert (ro.env_steps < 200) is stop
         assert torch.equal(torch.nonzero(ro.last).flatten(), torch.tensor([len(ro.last) - 1]))
+        cut = int(ro.env_steps - 4 * (len(ro.last) - 1))        # actions of the last decision that ran
+        assert ro.executed[:-1].tolist() == [4] * (len(ro.last) - 1) and int(ro.executed[-1]) == cut
+        assert (cut < 4) is (stop and ro.env_steps % 4 != 0)
 
 
 @pytest.mark.parametrize("reduce", ["sum", "mean"])
@@ -578,3 +581,33 @@ def test_training_layouts_of_different_seeds_do_not_overlap():
     assert all(len(set(r)) == 1600 and TRAIN_LAYOUT_BASE <= min(r) and max(r) < TRAIN_LAYOUT_BASE + TRAIN_LAYOUT_SPAN
                for r in runs)
     assert len(set().union(*map(set, runs))) == 16 * 1600
+
+
+@pytest.mark.parametrize("reduce", ["sum", "mean"])
+def test_chunks_cut_short_drop_the_rows_they_did_not_execute(reduce):
+    """Per-row counts: a chunk whose episode ended after one action keeps one row of its last step."""
+    from action_decoder.rl.sde_policy import reduce_step_log_probs
+
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=3)
+    batch = _batch()
+    with torch.no_grad():
+        res = sample_chain(policy, batch, 3, torch.Generator().manual_seed(0), reduce=reduce)
+        full = policy.chain_log_prob(batch, res.chain, res.grid, reduce="none")            # [B, K, H, D]
+    counts = torch.tensor([1, 3] + [4] * (len(res.chain) - 2))
+    per_row = reduce_step_log_probs(full, reduce, counts)
+    for i, n in enumerate(counts.tolist()):
+        torch.testing.assert_close(per_row[i], reduce_step_log_probs(full[i:i + 1], reduce, n)[0])
+    assert not torch.allclose(per_row[0, -1], per_row[1, -1])
+    torch.testing.assert_close(rescore_chain(policy, batch, res.chain, res.grid, reduce, counts), per_row)
+
+
+def test_finetune_with_chunks_cut_by_the_episode_cap_stays_on_policy(tmp_path):
+    """A cap of 10 steps with 4 actions per decision cuts each episode's last chunk after 2 actions:
+    those chunks are re-scored without their unexecuted rows, and PPO's first ratio is still 1."""
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    assert main(["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--env-steps", "40",
+                 "--num-envs", "2", "--max-episode-steps", "10", "--sde-steps", "3", "--trained-steps", "2",
+                 "--eval-episodes", "1", "--minibatch-size", "4", "--group-size", "2", "--reward", "success"]) == 0
+    history = json.loads((out / "finetune_log.json").read_text())["history"]
+    assert history and all(h["ratio_dev_before_update"] <= 1e-4 for h in history)

@@ -415,9 +415,14 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
         rec = ro.records
         rewards = decision_rewards(ro, cfg, n_exec)
+        executed = ro.executed                                    # [N]: < n_exec where the episode ended mid-chunk
         with torch.no_grad():
+            cut = executed < n_exec
+            if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
+                rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut], rec["grid"][0],
+                                                 cfg.logprob_reduce, executed[cut])
             logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
-                                                rec["grid"][0], cfg.logprob_reduce, n_exec)
+                                                rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
                                   for i in range(0, len(rewards), 512)])
         # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
         # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
@@ -431,7 +436,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             if group > 1:
                 adv = group_advantages(rewards, ro.last, cfg.gamma, group)
             data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
-                    "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret}
+                    "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret,
+                    "executed": executed}
             stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
                                update_policy=group > 1 or iteration >= critic_warmup)
         else:

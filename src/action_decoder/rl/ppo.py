@@ -122,7 +122,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
 
     `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
-    logp_old / logp_ref [N, K] (rollout policy / frozen BC policy), adv, ret [N].
+    logp_old / logp_ref [N, K] (rollout policy / frozen BC policy), adv, ret [N], and optionally
+    executed [N] (actions of each chunk executed; default n_action_steps).
     `update_policy=False` trains only the critic (warm-up). With `cfg.lr_schedule == "adaptive"` the
     first parameter group's learning rate (the velocity network's) follows `adapt_lr` after every
     minibatch measured past an update, within [`cfg.lr` / 100, `cfg.lr` × 10]; it lives in the
@@ -165,8 +166,9 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                 log_ratios = []
                 for sub in idx.split(micro):
                     w = len(sub) / len(idx)                   # micro-batch share of the minibatch mean
+                    executed = data["executed"][sub] if "executed" in data else policy.config.n_action_steps
                     lp = rescore_chain(policy, make_batch(data["states"][sub]), chain[sub], grid,
-                                       cfg.logprob_reduce, policy.config.n_action_steps)            # [b, K']
+                                       cfg.logprob_reduce, executed)                                 # [b, K']
                     log_ratio = lp - data["logp_old"][sub, trained]
                     ratio = log_ratio.exp()
                     a = adv[sub, None]

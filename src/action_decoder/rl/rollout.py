@@ -38,6 +38,7 @@ class Rollout:
     success: Tensor         # [N] bool: the success flag was raised during this decision
     terminal: Tensor        # [N] bool: the episode ended in a terminal state (success with stop_on_success)
     last: Tensor            # [N] bool: the episode ended after this decision
+    executed: Tensor        # [N] long: actions of the chunk executed (fewer than n_action_steps where it ended)
     records: dict           # name -> Tensor [N, ...]
     episode_returns: list   # [E] env return per episode
     episode_success: list   # [E] bool
@@ -61,9 +62,10 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
         chunks = np.clip(np.asarray(chunks)[:, :n_action_steps], -1.0, 1.0)
         still = []
         for j, e in enumerate(active):
-            state, reward, success, before = obs[e].copy(), 0.0, False, latest[e]
+            state, reward, success, before, executed = obs[e].copy(), 0.0, False, latest[e], 0
             for action in chunks[j]:
                 o, r, _, _, info = envs[e].step(action)
+                executed += 1
                 obs[e], steps[e], reward = o, steps[e] + 1, reward + float(r)
                 latest[e] = float(r)
                 before = latest[e] if before is None else before
@@ -77,19 +79,21 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
             rows[e].append({"state": state, "next_state": obs[e].copy(), "progress": progress[j],
                             "next_progress": steps[e] / max_steps, "reward": reward, "reward_before": before,
                             "reward_after": latest[e], "success": success,
-                            "terminal": terminal, "last": last, **{k: v[j] for k, v in record.items()}})
+                            "terminal": terminal, "last": last, "executed": executed,
+                            **{k: v[j] for k, v in record.items()}})
             if not last:
                 still.append(e)
         active = still
     flat = [r for ep in rows for r in ep]
     keys = [k for k in flat[0] if k not in ("state", "next_state", "progress", "next_progress", "reward",
-                                            "reward_before", "reward_after", "success", "terminal", "last")]
+                                            "reward_before", "reward_after", "success", "terminal", "last",
+                                            "executed")]
     col = lambda k, dt=torch.float32: torch.as_tensor(np.array([r[k] for r in flat]), dtype=dt)  # noqa: E731
     return Rollout(states=col("state"), next_states=col("next_state"), progress=col("progress"),
                    next_progress=col("next_progress"), env_rewards=col("reward"),
                    reward_before=col("reward_before"), reward_after=col("reward_after"),
                    success=col("success", torch.bool), terminal=col("terminal", torch.bool),
-                   last=col("last", torch.bool),
+                   last=col("last", torch.bool), executed=col("executed", torch.long),
                    records={k: torch.stack([r[k] for r in flat]) for k in keys},
                    episode_returns=returns, episode_success=wins,
                    episode_lengths=[int(s) for s in steps], env_steps=int(steps.sum()))

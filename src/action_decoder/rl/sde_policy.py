@@ -46,18 +46,21 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
     return policy.to(next(bc.parameters()).device)
 
 
-def reduce_step_log_probs(lp: Tensor, reduce: str, executed: Optional[int] = None) -> Tensor:
+def reduce_step_log_probs(lp: Tensor, reduce: str, executed: Optional[int | Tensor] = None) -> Tensor:
     """Per-element log-probs [B, K, H, D] -> per-step [B, K], summed or averaged over the chunk.
 
-    With `executed`, the last step keeps only the chunk's first `executed` rows: the others are
-    never executed and nothing later depends on them, so their noise is independent of the
-    reward and dropping their terms removes variance from the policy gradient without bias.
-    Earlier steps keep every row: their noise reaches the executed rows through attention.
+    With `executed` (one count, or one per row [B]), the last step keeps only the chunk's first
+    `executed` rows: the others are never executed and nothing later depends on them, so their
+    noise is independent of the reward and dropping their terms removes variance from the policy
+    gradient without bias. Earlier steps keep every row: their noise reaches the executed rows
+    through attention.
     """
-    if executed is None or executed >= lp.shape[-2]:
+    B, K, H = lp.shape[:3]
+    if executed is None or (not isinstance(executed, Tensor) and executed >= H):
         return lp.sum((-2, -1)) if reduce == "sum" else lp.mean((-2, -1))
-    keep = torch.ones(lp.shape[1:3], dtype=lp.dtype, device=lp.device)          # [K, H]
-    keep[-1, executed:] = 0
+    rows = torch.as_tensor(executed, device=lp.device).reshape(-1, 1)                    # [B or 1, 1]
+    keep = torch.ones(B, K, H, dtype=lp.dtype, device=lp.device)                         # [B, K, H]
+    keep[:, -1] = (torch.arange(H, device=lp.device) < rows).to(lp.dtype)
     total = (lp * keep[..., None]).sum((-2, -1))
     return total if reduce == "sum" else total / (keep.sum(-1) * lp.shape[-1])
 
@@ -80,7 +83,7 @@ def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, genera
 
 
 def rescore_chain(policy: ActionDecoderPolicy, batch: Mapping, chain: Tensor, grid: Tensor,
-                  reduce: str = "sum", executed: Optional[int] = None) -> Tensor:
+                  reduce: str = "sum", executed: Optional[int | Tensor] = None) -> Tensor:
     """Per-step log-probs [B, K] of stored chains under the current weights and σ."""
     return reduce_step_log_probs(policy.chain_log_prob(batch, chain, grid, reduce="none"), reduce, executed)
 
