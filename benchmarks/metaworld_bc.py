@@ -82,7 +82,11 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
                   "--output-dir", str(run)], log)
         _keep(run, args)
         return
-    if not (run / "final" / "model.safetensors").is_file():
+    if (run / "final" / "model.safetensors").is_file():
+        if have := recipe(run):         # empty: a checkpoint without its training config, nothing to compare
+            _check_reuse(run, have, {"demos": args.demos, "demo_noise": args.demo_noise,
+                                     "train_steps": args.steps, "batch_size": args.batch_size})
+    else:
         resume = ["--resume"] if (run / "checkpoints" / "last").is_file() else []
         _run([*CLI, "train", "--task", task, "--decoder", decoder, "--demos", str(args.demos),
               "--demo-noise", str(args.demo_noise), "--steps",
@@ -92,11 +96,21 @@ def run_one(task: str, seed: int, decoder: str, args) -> None:
     n = args.n_action_steps            # an evaluation setting: one trained policy serves every n
     for dec, sampler, k in METHODS:
         out = run / f"eval_{sampler}_k{k}_n{n}.json"
+        if dec == decoder and out.is_file():
+            _check_reuse(out, {"episodes": json.loads(out.read_text())["episodes_per_task"]}, {"episodes": args.episodes})
         if dec == decoder and not out.is_file():
             _run([*CLI, "eval", "--checkpoint", str(run / "final"), "--episodes", str(args.episodes),
                   "--sampler", sampler, "--steps", str(k), "--n-action-steps", str(n), "--seed", str(seed),
                   "--output", str(out)], log)
     _keep(run, args)
+
+
+def _check_reuse(path: Path, have: dict, want: dict) -> None:
+    """A run directory or evaluation kept from an earlier invocation serves only the same settings."""
+    other = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
+    if other:
+        raise SystemExit(f"{path}: made with {', '.join(f'{k}={h}' for k, (h, _) in other.items())}, not "
+                         f"{', '.join(f'{k}={w}' for k, (_, w) in other.items())}; pass --runs another directory")
 
 
 _MERGING = threading.Lock()     # runs finish on several threads; the results file has one writer at a time
@@ -171,8 +185,15 @@ def merge(results: Path, rows: list[dict]) -> list[dict]:
 
 def matching(rows: list[dict], want: dict) -> list[dict]:
     """The rows trained and evaluated as `want` says (other recipes stay in the file, not the table).
-    A key a row lacks matches anything: the MLP reference has its own fixed training budget."""
-    return [r for r in rows if all(r.get(k, v) == v for k, v in want.items())]
+    A key a row lacks matches anything: the MLP reference has its own fixed training budget. The MLP
+    reference re-plans every `MLP_N_ACTION_STEPS` by its definition, whatever the table's decoders do:
+    its rows at another count (recorded; a row without one ran at the default) stay out."""
+    def reference(r):
+        return r["decoder"] == "mlp_baseline"
+
+    return [r for r in rows
+            if not (reference(r) and r.get("n_action_steps", MLP_N_ACTION_STEPS) != MLP_N_ACTION_STEPS)
+            and all(r.get(k, v) == v for k, v in want.items() if not (reference(r) and k == "n_action_steps"))]
 
 
 def tabulate(rows: list[dict]) -> dict:

@@ -86,6 +86,7 @@ def run(task: str, seed: int, demos: int = 10, steps: int = 5000, batch_size: in
     train_s = time.perf_counter() - t0
     net.eval()
     out = {"task": task, "seed": seed, "params": sum(p.numel() for p in net.parameters()), "train_s": train_s,
+           "n_action_steps": n_action_steps,
            "recipe": {"demos": demos, "demo_noise": demo_noise, "state_layout": layout, "augment_shift": shift}}
     for k in ks:
         sample_gen = torch.Generator().manual_seed(seed)
@@ -111,6 +112,7 @@ def write_evals(res: dict, out_dir: Path, ks: tuple[int, ...]) -> None:
             "checkpoint": None, "decoder_type": "mlp_baseline", "sampler": "ode", "steps": k,
             "episodes_per_task": len(r["successes"]), "seed": res["seed"], "success_rate": r["success_rate"],
             "per_task": {r["task"]: r["success_rate"]}, "results": [r], "params": res["params"], "recipe": res["recipe"],
+            "n_action_steps": res["n_action_steps"],
             "train_s": res["train_s"]}, indent=1))
 
 

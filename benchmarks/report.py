@@ -106,10 +106,11 @@ def render(results: dict, plot_name: str | None) -> str:
         if any(r["n"] for r in q["rows"]):
             lines += [(f"Read from eval JSON files under `{q['dir']}`; latency is the median per-chunk "
                        "time at B = 1 of the checkpoint named in the JSON (or its `latency_ms`)."), ""]
-            rows = [[r["decoder"], r["sampler"], r["steps"],
+            rows = [[r["decoder"], r["sampler"], r["steps"], r.get("n_action_steps") or "–",
                      _f(r["success_rate"], "{:.1%}", "not measured"),
                      _f(r["latency_ms"], "{:.2f}", "not measured"), r["n"] or ""] for r in q["rows"]]
-            lines += [_table(["decoder", "sampler", "K", "success rate", "latency ms / chunk", "runs"], rows), ""]
+            lines += [_table(["decoder", "sampler", "K", "actions per chunk", "success rate", "latency ms / chunk",
+                              "task results"], rows), ""]
         else:
             lines += [("Not part of this run"
                        + (f" (no eval summaries under `{q['dir']}`)" if q["dir"] else "")

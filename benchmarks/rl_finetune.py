@@ -33,12 +33,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
-from action_decoder.rl.finetune import RUN_OPTIONS
+from action_decoder.rl.finetune import RUN_OPTIONS, FinetuneConfig
 
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 RUN_FIELDS = RUN_OPTIONS | {"task", "algo", "sigma", "seed"}
 """`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
+BC_DEMOS, BC_STEPS, CPU_MINUTES = 3, 2000, 45.0
+"""The protocol's BC (demonstrations, training steps) and fine-tuning budget (CPU-minutes per run)."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
 policy that succeeds often enough for its rollouts to carry a signal."""
@@ -123,7 +125,10 @@ def ft_dir_name(finetune_args: list[str], seed: int) -> str:
 
 
 def run_dir(task: str, decoder: str, args) -> Path:
-    return Path(args.runs) / f"{task.split('/')[-1]}_{decoder}{'' if args.algo == 'ppo' else '_' + args.algo}"
+    """`<runs>/<task>_<decoder>[_<algo>][_demos-N][_bc-steps-N]`: a BC policy of other settings is never reused."""
+    bc = (f"_demos-{args.demos}" if args.demos != BC_DEMOS else "") + \
+        (f"_bc-steps-{args.bc_steps}" if args.bc_steps != BC_STEPS else "")
+    return Path(args.runs) / f"{task.split('/')[-1]}_{decoder}{'' if args.algo == 'ppo' else '_' + args.algo}{bc}"
 
 
 def train_bc(task: str, decoder: str, args) -> Path:
@@ -151,6 +156,11 @@ def run_one(task: str, decoder: str, seed: int, args) -> None:
     k = planned_config(args.finetune_args).sde_steps
     if json.loads((run / "bc_eval.json").read_text())["steps"] != k:
         _eval(bc / "final", run / f"bc_eval_k{k}.json", "ode", args, log, steps=k)
+    if (ft / "finetune_log.json").is_file():
+        budget = json.loads((ft / "finetune_log.json").read_text())["config"].get("max_cpu_minutes")
+        if budget != args.cpu_minutes:
+            raise SystemExit(f"--cpu-minutes: {ft} finished a run of {budget} CPU-minutes, not {args.cpu_minutes}; "
+                             f"pass --runs another directory to measure another budget")
     if not (ft / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (ft / "checkpoints" / "last").is_file() else []
         _run([*CLI, "finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(ft), "--algo", args.algo,
@@ -240,8 +250,12 @@ def collect(runs: Path) -> list[dict]:
             hist, last = log["history"], log["history"][-1]
             cpu = {h["iteration"]: h.get("cpu_s", h["wall_s"]) / 60 for h in hist}
             tail = hist[-10:]
+            bc_config = run / "bc" / "final" / "config.json"
+            trained = json.loads(bc_config.read_text())["extra"].get("train", {}) if bc_config.is_file() else {}
             rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
                          "sigma": log["config"].get("sigma"), "recipe": recipe(log["config"]),
+                         "cpu_budget": log["config"].get("max_cpu_minutes"), "bc_demos": trained.get("demos"),
+                         "bc_train_steps": trained.get("steps"),
                          "seed": log["config"].get("seed", 0), "half": half(log["task"]),
                          "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"],
                          "ft_k": ft_k, "ft_sde": sde["success_rate"], "ft_ode": ode["success_rate"],
@@ -259,7 +273,11 @@ def collect(runs: Path) -> list[dict]:
 
 
 def _key(r: dict) -> tuple:
-    return r["task"], r["decoder"], r["algo"], r.get("recipe", "defaults"), r.get("seed", 0)
+    """A run's identity: what it fine-tuned, how (recipe, σ, budget) and from which BC policy; rows
+    recorded before a field had the protocol's value."""
+    return (r["task"], r["decoder"], r["algo"], r.get("recipe", "defaults"), r.get("seed", 0),
+            float(r.get("sigma") or FinetuneConfig.sigma), float(r.get("cpu_budget") or CPU_MINUTES),
+            int(r.get("bc_demos") or BC_DEMOS), int(r.get("bc_train_steps") or BC_STEPS))
 
 
 def planned_recipe(finetune_args: list[str]) -> str:
@@ -408,9 +426,9 @@ def main(argv=None) -> None:
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0], help="fine-tuning seeds (the BC policy is shared)")
     p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
-    p.add_argument("--demos", type=int, default=3)
-    p.add_argument("--bc-steps", type=int, default=2000)
-    p.add_argument("--cpu-minutes", type=float, default=45)
+    p.add_argument("--demos", type=int, default=BC_DEMOS)
+    p.add_argument("--bc-steps", type=int, default=BC_STEPS)
+    p.add_argument("--cpu-minutes", type=float, default=CPU_MINUTES)
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--jobs", type=int, default=1, help="runs in parallel (one core each)")
     p.add_argument("--runs", default="runs/rl_finetune")
@@ -432,7 +450,10 @@ def main(argv=None) -> None:
                                         for d in args.decoders for s in args.seeds]
     if grid:
         done, how = recorded(Path(args.results)), planned_recipe(args.finetune_args)
-        skipped = [(t, d, s) for t, d, s in grid if (t.split("/")[-1], d, args.algo, how, s) in done]
+        sigma = planned_config(args.finetune_args).sigma
+        skipped = [(t, d, s) for t, d, s in grid
+                   if (t.split("/")[-1], d, args.algo, how, s, float(sigma), float(args.cpu_minutes), args.demos,
+                       args.bc_steps) in done]
         for task, dec, seed in skipped:
             print(f"{task} {dec} seed {seed}: recorded in {args.results}; delete its row to run it again")
         grid = [job for job in grid if job not in skipped]

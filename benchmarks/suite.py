@@ -320,6 +320,9 @@ def _latency_ms(checkpoint: str, sampler: str, steps: int, bc: BenchConfig, cloc
 
 
 def bench_quality(bc: BenchConfig, clock: Clock) -> dict:
+    """Success and chunk latency per (decoder, sampler, K, actions executed per chunk) from the eval
+    summaries under `bc.quality_dir`; success is the mean over every (summary, task) result, so a
+    multi-task summary counts once per task."""
     found: Dict[tuple, list] = {}
     if bc.quality_dir:
         for p in sorted(Path(bc.quality_dir).rglob("*.json")):
@@ -329,16 +332,19 @@ def bench_quality(bc: BenchConfig, clock: Clock) -> dict:
                 continue
             if not isinstance(d, dict) or "success_rate" not in d or "decoder_type" not in d:
                 continue
-            key = (d["decoder_type"], d.get("sampler") or "ode", int(d.get("steps") or 0))
+            key = (d["decoder_type"], d.get("sampler") or "ode", int(d.get("steps") or 0), d.get("n_action_steps"))
             found.setdefault(key, []).append((p, d))
+    keys = [k for q in QUALITY_ROWS for k in (sorted((f for f in found if f[:3] == q), key=str) or [(*q, None)])]
+    keys += sorted((k for k in found if k[:3] not in QUALITY_ROWS), key=str)
     rows = []
-    for key in QUALITY_ROWS + sorted(set(found) - set(QUALITY_ROWS)):
-        dec, sampler, k = key
+    for key in keys:
+        dec, sampler, k, n_exec = key
         entries = found.get(key, [])
-        row = {"decoder": dec, "sampler": sampler, "steps": k, "n": len(entries), "success_rate": None,
-               "latency_ms": None, "source": None}
+        results = [float(v) for _, d in entries for v in (d.get("per_task") or {"": d["success_rate"]}).values()]
+        row = {"decoder": dec, "sampler": sampler, "steps": k, "n_action_steps": n_exec, "n": len(results),
+               "success_rate": None, "latency_ms": None, "source": None}
         if entries:
-            row["success_rate"] = sum(float(d["success_rate"]) for _, d in entries) / len(entries)
+            row["success_rate"] = sum(results) / len(results)
             lat = [float(d["latency_ms"]) for _, d in entries if "latency_ms" in d]
             if not lat:
                 lat = [x for x in (_latency_ms(str(d.get("checkpoint", "")), sampler, k, bc, clock)

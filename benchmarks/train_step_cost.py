@@ -131,8 +131,12 @@ def variants(size: tuple, batch: dict, autocast: Optional[torch.dtype] = None) -
 
 
 def _quantile(xs: List[float], q: float) -> float:
+    """The q-quantile, interpolating linearly between order statistics at position q·(n − 1)
+    (q = 0.5: the median, the mean of the two middle values for an even count)."""
     xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(round(q * (len(xs) - 1))))]
+    pos = q * (len(xs) - 1)
+    lo = int(pos)
+    return xs[lo] + (xs[min(lo + 1, len(xs) - 1)] - xs[lo]) * (pos - lo)
 
 
 def time_size(name: str, size: tuple, reps: int, warmup: int, device: str = "cpu",
@@ -153,7 +157,7 @@ def time_size(name: str, size: tuple, reps: int, warmup: int, device: str = "cpu
         ratio = [s[0] / s[1] for s in samples]
         rows.append({"variant": k, "step_ms": _quantile([s[0] * 1e3 for s in samples], 0.5),
                      "vs_fm": _quantile(ratio, 0.5), "q25": _quantile(ratio, 0.25), "q75": _quantile(ratio, 0.75),
-                     "min": min(ratio), "max": max(ratio)})
+                     "min": min(ratio), "max": max(ratio), "ratios": ratio})
     return {"size": name, "batch": BATCH, "rounds": reps, "rows": rows, "device": device,
             "autocast": str(autocast).replace("torch.", "") if autocast else "none"}
 

@@ -503,3 +503,73 @@ def test_memory_text_names_the_cpu_analogue_only_on_a_cpu(bench_main):
     assert (cpu["machine"]["device"], gpu["machine"]["device"]) == ("cpu", "cuda")
     assert "CPU analogue" in render(cpu, None)
     assert "CPU analogue" not in render(gpu, None) and "torch.cuda.max_memory_allocated" in render(gpu, None)
+
+
+def test_rl_rows_of_another_sigma_budget_or_bc_are_other_runs(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from types import SimpleNamespace
+
+    from benchmarks import rl_finetune
+
+    row = {"task": "door-lock-v3", "decoder": "flow_matching", "algo": "ppo", "seed": 0, "sigma": 0.25, "half": "dev"}
+    variants = [row, {**row, "sigma": 0.5}, {**row, "cpu_budget": 90.0}, {**row, "bc_demos": 10},
+                {**row, "bc_train_steps": 5000}]
+    assert len(rl_finetune.merge(tmp_path / "r.json", variants)) == 5
+    assert rl_finetune._key({**row, "cpu_budget": 45.0, "bc_demos": 3, "bc_train_steps": 2000}) == rl_finetune._key(row)
+    args = SimpleNamespace(runs="runs", algo="ppo", demos=3, bc_steps=2000)
+    assert rl_finetune.run_dir("metaworld/reach", "mean_flow", args).name == "reach_mean_flow"
+    args.demos, args.bc_steps = 10, 500
+    assert rl_finetune.run_dir("metaworld/reach", "mean_flow", args).name == "reach_mean_flow_demos-10_bc-steps-500"
+
+
+def test_mlp_reference_column_holds_its_own_replanning_only(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks.metaworld_bc import MLP_N_ACTION_STEPS, matching
+
+    base = {"task": "push-v3", "seed": 0, "decoder": "mlp_baseline", "sampler": "ode", "steps": 10, "success": 0.9}
+    rows = [base, {**base, "n_action_steps": MLP_N_ACTION_STEPS, "success": 0.8}, {**base, "n_action_steps": 4},
+            {**base, "decoder": "flow_matching", "n_action_steps": 4}, {**base, "decoder": "flow_matching",
+                                                                         "n_action_steps": 8}]
+    got = matching(rows, {"n_action_steps": 4})
+    assert [(r["decoder"], r.get("n_action_steps")) for r in got] == [
+        ("mlp_baseline", None), ("mlp_baseline", MLP_N_ACTION_STEPS), ("flow_matching", 4)]
+
+
+def test_bc_run_or_evaluation_of_other_settings_is_not_reused(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import metaworld_bc
+
+    run = tmp_path / "runs" / "push_s0_flow_matching"
+    (run / "final").mkdir(parents=True)
+    (run / "final" / "model.safetensors").touch()
+    (run / "final" / "config.json").write_text(json.dumps({"state_layout": "metaworld", "decoder_type": "flow_matching",
+        "extra": {"train": {"demos": 10, "demo_noise": 0.0, "steps": 5000, "batch_size": 128, "augment_shift": 0.05}}}))
+    monkeypatch.setattr(metaworld_bc, "_run", lambda cmd, log: pytest.fail(f"ran {cmd}"))
+    args = type("Args", (), {"runs": str(tmp_path / "runs"), "demo_noise": 0.0, "done": {}, "n_action_steps": 4,
+                             "episodes": 50, "steps": 1500, "batch_size": 128, "demos": 30,
+                             "meanflow_target": "identity", "results": tmp_path / "r.json"})
+    with pytest.raises(SystemExit, match=r"made with demos=10, train_steps=5000, not demos=30, train_steps=1500"):
+        metaworld_bc.run_one("metaworld/push", 0, "flow_matching", args)
+    args.steps, args.demos, args.episodes = 5000, 10, 20
+    (run / "eval_ode_k10_n4.json").write_text(json.dumps({"episodes_per_task": 50}))
+    with pytest.raises(SystemExit, match=r"eval_ode_k10_n4.json: made with episodes=50, not episodes=20"):
+        metaworld_bc.run_one("metaworld/push", 0, "flow_matching", args)
+
+
+def test_quality_rows_keep_replanning_apart_and_weight_tasks(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import suite
+
+    def summary(name, n, per_task):
+        (tmp_path / name).write_text(json.dumps({
+            "decoder_type": "flow_matching", "sampler": "ode", "steps": 10, "n_action_steps": n, "latency_ms": 5.0,
+            "success_rate": sum(per_task.values()) / len(per_task), "per_task": per_task}))
+
+    summary("a.json", 4, {"push-v3": 0.9})
+    summary("b.json", 8, {"push-v3": 0.5})
+    summary("c.json", 4, {f"t{i}-v3": 0.8 for i in range(10)})
+    bc = type("BC", (), {"quality_dir": str(tmp_path), "latency_reps": 1})
+    rows = {r["n_action_steps"]: r for r in suite.bench_quality(bc, None)["rows"]
+            if (r["decoder"], r["sampler"], r["steps"]) == ("flow_matching", "ode", 10)}
+    assert set(rows) == {4, 8} and rows[8]["success_rate"] == 0.5 and rows[4]["n"] == 11
+    assert rows[4]["success_rate"] == pytest.approx((0.9 + 8.0) / 11)

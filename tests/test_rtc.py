@@ -324,3 +324,21 @@ def test_flow_matching_guidance_under_inference_mode_is_one_line_and_meanflows_w
                                                r"torch.inference_mode\(\)"):
             sample_ode_rtc(gm.velocity, e, prev, 2, 4)
     assert torch.isfinite(expected).all()
+
+
+def test_benchmark_page_states_the_noise_of_each_cells_episode_count(tmp_path):
+    from argparse import Namespace
+
+    from benchmarks.rtc import write_page
+
+    def row(task, rtc, horizon=None):
+        return {"task": task, "decoder": "mean_flow", "steps": 1, "delay": 2, "rtc": rtc, "episodes": 20, "seed": 0,
+                "successes": 10, "success_rate": 0.5, "boundary_jerk": 0.1, "boundaries": 10,
+                "episode_boundary_jerk": [0.1] * 20, "latency_ms": 10.0, "command": "c", "rtc_horizon": horizon}
+
+    rows = [row(t, False) for t in "abcde"] + [row(t, True, "execution") for t in "abcde"] + \
+        [row(t, True, "overlap") for t in "ab"]
+    write_page(rows, tmp_path / "rtc.md", Namespace(seed=0, latency_reps=5), "c")
+    text = (tmp_path / "rtc.md").read_text()
+    assert "±5.0 points over 100 episodes (beyond noise: more than 14 points)" in text
+    assert "±7.9 points over 40 episodes (beyond noise: more than 22 points)" in text

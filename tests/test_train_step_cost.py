@@ -108,3 +108,14 @@ def test_bad_device_options_are_one_line_errors(cost, capsys):
         with pytest.raises(SystemExit):
             cost.main(["--device", "cuda", "--precision-only"])
         assert "--device: expected a device this torch can use, got 'cuda'" in capsys.readouterr().err
+
+
+def test_reported_median_and_quartiles_interpolate_between_order_statistics():
+    import statistics
+
+    from benchmarks.train_step_cost import _quantile
+
+    for xs in ([4.0, 1.0, 3.0, 2.0], [float(x) for x in range(20)], [float(x) for x in range(9)]):
+        assert _quantile(xs, 0.5) == statistics.median(xs)
+        q1, _, q3 = statistics.quantiles(xs, n=4, method="inclusive")
+        assert (_quantile(xs, 0.25), _quantile(xs, 0.75)) == (q1, q3)
