@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
+from .normalize import ACTION_CONSTANT_BELOW, SPREAD_FLOOR
 from .state_layout import METAWORLD_LAYOUTS, METAWORLD_STATE_DIM, STATE_LAYOUTS, input_dim
 
 DECODER_TYPES = ("DDPM", "flow_matching", "mean_flow")
@@ -47,7 +48,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 0,
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
-    6: {"action_constant_below": 1e-2},
+    6: {"action_constant_below": SPREAD_FLOOR},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -163,7 +164,7 @@ class DecoderConfig:
     # keeps its own spread, so an end-effector delta of std 0.003 reaches the network at unit
     # scale. State dimensions take the floor below 0.01. Format-5 files, older than the field,
     # read as 0.01 (every action spread floored at 0.01).
-    action_constant_below: float = 1e-6
+    action_constant_below: float = ACTION_CONSTANT_BELOW
     state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
                                  # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0

@@ -11,6 +11,9 @@ STAT_NAMES = ("mean", "std", "min", "max")
 # Constant dimensions (Meta-World has several) must not blow up when divided by their spread:
 # a spread below a feature's `constant_below` is replaced by this floor.
 SPREAD_FLOOR = 1e-2
+# An action dimension is constant below this spread; any other keeps its own (an end-effector
+# delta of std 0.003 m must reach the network at unit scale). States take the floor below SPREAD_FLOOR.
+ACTION_CONSTANT_BELOW = 1e-6
 
 
 class Normalizer(nn.Module):

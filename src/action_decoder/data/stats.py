@@ -16,8 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-STD_FLOOR = 1e-2
-ACTION_CONSTANT_BELOW = 1e-6
+from ..normalize import ACTION_CONSTANT_BELOW, SPREAD_FLOOR as STD_FLOOR  # noqa: F401 (re-exported)
 STAT_KEYS = ("mean", "std", "min", "max")
 
 
