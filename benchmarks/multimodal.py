@@ -35,7 +35,7 @@ import action_decoder.policy as policy_mod
 from action_decoder import ActionDecoderPolicy, DecoderConfig
 from action_decoder.cli import check_device
 from action_decoder.flows import losses
-from action_decoder.train import weight_average
+from action_decoder.train import lr_factor, weight_average
 
 # column: (label, decoder_type, sampler, K)
 COLUMNS = [("DDPM K=10", "DDPM", "ode", 10), ("FM K=1", "flow_matching", "ode", 1),
@@ -187,8 +187,7 @@ def train(decoder: str, draw, state_dim: int, action_dim: int, b: Budget, seed: 
     policy.sigma.requires_grad_(False)
     params = [p for p in policy.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=1e-3, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: min(1.0, (s + 1) / 100) * 0.5 * (1 + math.cos(math.pi * min(s, b.steps) / b.steps)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, 100, b.steps))
     ema = weight_average(policy, 0.999)
     data = torch.Generator().manual_seed(seed * 1000)                    # batches are drawn on the CPU
     noise = torch.Generator(b.device).manual_seed(seed * 1000 + 500)     # the loss's noise, on the policy's device

@@ -104,7 +104,8 @@ def test_corrupted_checkpoint_and_nan_dataset(tmp_path, env):
 
 def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     common = ["train", *TINY, "--decoder", "mean_flow", "--steps", "120", "--checkpoint-every", "10",
-              "--eval-episodes", "0", "--hidden-size", "64", "--num-layers", "2", "--batch-size", "64"]
+              "--log-every", "4", "--eval-episodes", "0", "--hidden-size", "64", "--num-layers", "2",
+              "--batch-size", "64"]
     straight = run([*common, "--output-dir", str(tmp_path / "a")], env)
     assert straight.returncode == 0, straight.stderr
     out = tmp_path / "b"
@@ -128,7 +129,11 @@ def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     b = ActionDecoderPolicy.from_pretrained(out / "final").state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     log = json.loads((out / "train_log.json").read_text())["history"]
-    assert [h["step"] for h in log] == list(range(5, 121, 5))
+    assert [h["step"] for h in log] == list(range(4, 121, 4))
+    # A log row whose window spans the checkpoint the run resumed from is the uninterrupted run's row.
+    assert log == json.loads((tmp_path / "a" / "train_log.json").read_text())["history"]
+    from action_decoder.train import lr_factor
+    assert [h["lr"] for h in log[:2]] == pytest.approx([1e-3 * lr_factor(3, 100, 120), 1e-3 * lr_factor(7, 100, 120)])
 
 
 @pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
@@ -428,3 +433,54 @@ def test_an_interrupted_eval_does_not_point_to_a_resume_it_lacks(tmp_path, cli_m
     monkeypatch.setattr("action_decoder.evaluate.run_eval", interrupted)
     res = cli_main(["eval", "--checkpoint", str(tmp_path)])
     assert res.returncode == 130 and "--resume" not in res.stderr and "nothing was saved" in res.stderr
+
+
+def test_torchrun_resume_continues_each_processes_own_streams(tmp_path, env):
+    """Two processes, interrupted after step 4 and resumed from the checkpoint of step 3, end with the
+    uninterrupted run's weights and log rows (each rank restores its own data and noise streams)."""
+    script = tmp_path / "ddp_resume.py"
+    script.write_text(textwrap.dedent("""
+        import json, os, sys, torch, torch.distributed as dist
+        from pathlib import Path
+        from action_decoder.train import TrainConfig, train
+        import action_decoder.train as T
+
+        def cfg(out, **kw):
+            return TrainConfig(task="metaworld/reach", demos=2, batch_size=16, hidden_size=32, num_layers=1,
+                               steps=6, checkpoint_every=3, log_every=2, output_dir=out, eval_episodes=0,
+                               progress=False, device="cpu", **kw)
+
+        root = Path(sys.argv[1])
+        train(cfg(str(root / "a")))
+        real, calls = T._batch, [0]
+        def stop_at_five(*a, **k):
+            calls[0] += 1
+            if calls[0] == 5:
+                raise KeyboardInterrupt
+            return real(*a, **k)
+        T._batch = stop_at_five
+        try:
+            train(cfg(str(root / "b")))
+        except KeyboardInterrupt:
+            pass
+        T._batch = real
+        dist.barrier()
+        train(cfg(str(root / "b"), resume=True))
+        if dist.get_rank() == 0:
+            from safetensors.torch import load_file
+            a, b = (load_file(str(root / d / "final" / "model.safetensors")) for d in "ab")
+            print("MAXDIFF", max(float((a[k] - b[k]).abs().max()) for k in a), flush=True)
+            logs = [json.loads((root / d / "train_log.json").read_text())["history"] for d in "ab"]
+            print("SAMELOG", logs[0] == logs[1], flush=True)
+        dist.barrier()
+        dist.destroy_process_group()
+        os._exit(0)
+    """))
+    from action_decoder.data import generate_demos
+    os.environ["ACTION_DECODER_CACHE"] = env["ACTION_DECODER_CACHE"]
+    generate_demos("reach-v3", 2, 0)
+    res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+                          "--master_port", str(29700 + os.getpid() % 1000), str(script), str(tmp_path)],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert float(res.stdout.split("MAXDIFF")[1].split()[0]) == 0.0 and "SAMELOG True" in res.stdout, res.stdout

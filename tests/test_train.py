@@ -1,5 +1,7 @@
 """Training pieces below the CLI: the weight average that `final/` holds."""
 
+import math
+
 import pytest
 import torch
 
@@ -60,3 +62,14 @@ def test_an_image_size_without_cameras_is_refused():
                                          r"cameras"):
         camera_fields(TrainConfig(image_size=128), None)
     assert camera_fields(TrainConfig(), None) == {}
+
+
+def test_learning_rate_warms_up_to_lr_then_follows_a_cosine_over_the_remaining_steps():
+    from action_decoder.train import lr_factor
+
+    assert [lr_factor(s, 3, 10) for s in range(3)] == pytest.approx([1 / 3, 2 / 3, 1.0])
+    assert lr_factor(3, 3, 10) == 1.0                                       # the cosine starts at the peak
+    assert lr_factor(3 + 7 / 2, 3, 10) == pytest.approx(0.5)                # half-way through the cosine
+    assert 0 < lr_factor(9, 3, 10) < 0.06 and lr_factor(10, 3, 10) == pytest.approx(0.0)
+    assert max(lr_factor(s, 100, 100) for s in range(100)) == 1.0          # a run as long as its warm-up
+    assert lr_factor(0, 0, 10) == 1.0 and lr_factor(5, 0, 10) == pytest.approx(0.5 * (1 + math.cos(math.pi * 4 / 9)))

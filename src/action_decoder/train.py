@@ -64,9 +64,12 @@ class TrainConfig:
     batch_size: int = 128
     """Global batch size (split across processes)."""
     lr: float = 1e-3
+    """Peak learning rate of AdamW: reached at the end of the warm-up, then a cosine towards 0 at the last step."""
     weight_decay: float = 1e-4
     warmup_steps: int = 100
+    """Steps of linear warm-up from lr/warmup_steps to lr."""
     grad_clip: float = 1.0
+    """Clip of the gradient norm (the logged grad_norm is before clipping)."""
     ema_decay: float = 0.999
     """Ceiling of the decay of the weight average that `final/` holds (0: the raw weights); warmed
     up as 1 − (1 + n)^(−3/4) so that the random initial weights fade within the first steps."""
@@ -377,12 +380,38 @@ def weight_average(policy, decay: float) -> Optional[torch.optim.swa_utils.Avera
     return torch.optim.swa_utils.AveragedModel(policy, multi_avg_fn=update)
 
 
-def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, data_gen: torch.Generator,
-                    loss_gen: torch.Generator, history: list, ema=None) -> Path:
+def lr_factor(step: int, warmup_steps: int, steps: int) -> float:
+    """The learning rate of optimizer step `step` (0-based) as a fraction of `--lr`: a linear warm-up
+    reaching 1 at step `warmup_steps` − 1, then a cosine from 1 at step `warmup_steps` towards 0 at
+    step `steps` (diffusers' and LeRobot's cosine-with-warm-up, without their lr of 0 at step 0)."""
+    warm = max(warmup_steps, 1)
+    if step < warm:
+        return (step + 1) / warm
+    progress = min(step - warm, steps - warm) / max(steps - warm, 1)
+    return 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def save_checkpoint(out: Path, step: int, policy, optimizer, scheduler, ranks: list, history: list,
+                    ema=None) -> Path:
+    """`ranks`: every process's generator states and open logging window, by rank (`rank_states`),
+    so that each process of a resumed run continues its own streams and logs the same rows."""
     return write_checkpoint(out, step, policy, {
         "step": step, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-        "data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state(), "rng": _rng_state(),
+        "ranks": ranks, "rng": _rng_state(),
         "history": history, "ema": None if ema is None else ema.state_dict()})
+
+
+def rank_states(data_gen: torch.Generator, loss_gen: torch.Generator, running: list, grad_norms: list,
+                world: int) -> list:
+    """[{data_gen, loss_gen, window}] of every process, by rank: its generator states and the losses and
+    gradient norms of its steps since the last log row (a collective: every rank calls it)."""
+    mine = {"data_gen": data_gen.get_state(), "loss_gen": loss_gen.get_state().cpu(),
+            "window": {"losses": [float(x) for x in running], "grad_norms": [float(x) for x in grad_norms]}}
+    if world == 1:
+        return [mine]
+    states: list = [None] * world
+    torch.distributed.all_gather_object(states, mine)
+    return states
 
 
 def _fmt(value) -> str:
@@ -391,7 +420,8 @@ def _fmt(value) -> str:
 
 RESUMABLE = ("steps", "checkpoint_every", "log_every", "eval_episodes", "progress", "device", "resume", "output_dir",
              "wandb", "wandb_project")
-"""TrainConfig fields that `--resume` may change: they do not change what is trained."""
+"""TrainConfig fields that `--resume` may change: they do not change what is trained (more `steps`
+stretches the rest of the cosine over the new length, from the resumed step on)."""
 
 
 def _effective(cfg: TrainConfig) -> dict:
@@ -550,9 +580,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     policy.sigma.requires_grad_(False)
     optimizer = torch.optim.AdamW([p for p in policy.parameters() if p.requires_grad], lr=cfg.lr,
                                   weight_decay=cfg.weight_decay)
-    warm = max(cfg.warmup_steps, 1)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: min(1.0, (s + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps)))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg.warmup_steps, cfg.steps))
     # Rank-specific streams: each process draws its own rows and its own noise.
     data_gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank)
     loss_gen = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + 500 + rank)
@@ -565,8 +593,19 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         policy.load_state_dict(loaded.state_dict())
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
-        data_gen.set_state(state["data_gen"])
-        loss_gen.set_state(state["loss_gen"].to(loss_gen.get_state().device))
+        # A checkpoint written before "ranks" kept rank 0's generators at the top level.
+        saved = state.get("ranks") or [{"data_gen": state["data_gen"], "loss_gen": state["loss_gen"]}]
+        window = {"losses": [], "grad_norms": []}
+        if len(saved) == world:                 # each process continues its own streams and window
+            data_gen.set_state(saved[rank]["data_gen"])
+            loss_gen.set_state(saved[rank]["loss_gen"].to(loss_gen.get_state().device))
+            window = saved[rank].get("window") or window
+        else:                                   # another number of processes: fresh streams per rank and step
+            data_gen.manual_seed(cfg.seed * 1000 + rank + 7919 * state["step"])
+            loss_gen.manual_seed(cfg.seed * 1000 + 500 + rank + 7919 * state["step"])
+            if main:
+                print(f"resume: {ckpt} was trained by {len(saved)} process(es), this run has {world}: the data "
+                      f"and noise streams restart (the run is not bit-exact with an uninterrupted one)", flush=True)
         _set_rng_state(state["rng"])
         start, history = state["step"], state["history"]
         if ema is not None and state.get("ema") is not None:
@@ -586,7 +625,10 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     logger = RunLogger(out, "train_log.jsonl", start, cfg.wandb_project if cfg.wandb else None, "train",
                        asdict(cfg)) if main else None
     policy.train()
-    t0, running, grad_norms = time.perf_counter(), [], []
+    t0 = time.perf_counter()
+    # The steps since the last log row (a resumed run continues the window its checkpoint kept).
+    running = [torch.tensor(x, device=device) for x in window["losses"]] if resumed is not None else []
+    grad_norms = [torch.tensor(x, device=device) for x in window["grad_norms"]] if resumed is not None else []
     t_logged = t0
     for step in range(start, cfg.steps):
         idx = torch.randint(len(ds), (local_batch,), generator=data_gen)
@@ -595,6 +637,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norms.append(torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip).detach())  # before clipping
+        lr_used = optimizer.param_groups[0]["lr"]
         optimizer.step()
         scheduler.step()
         if ema is not None:
@@ -602,9 +645,13 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
         running.append(loss.detach())
         done = step + 1
         if done % cfg.log_every == 0 or done == cfg.steps:
-            mean_loss = float(torch.stack(running).mean())
+            mean = torch.stack(running).mean()
+            if world > 1:                       # the global batch's loss, not rank 0's share of it
+                torch.distributed.all_reduce(mean)
+                mean = mean / world
+            mean_loss = float(mean)
             now = time.perf_counter()
-            row = {"step": done, "loss": mean_loss, "lr": scheduler.get_last_lr()[0],
+            row = {"step": done, "loss": mean_loss, "lr": lr_used,
                    "grad_norm": float(torch.stack(grad_norms).mean())}
             if ema is not None:
                 row["ema_decay"] = ema_decay_at(cfg.ema_decay, int(ema.n_averaged) - 1)
@@ -620,8 +667,10 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
                 bar.set_postfix(loss=f"{mean_loss:.4f}", steps_per_s=f"{(done - start) / (time.perf_counter() - t0):.1f}")
         if bar is not None:
             bar.update(1)
-        if main and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            save_checkpoint(out, done, policy, optimizer, scheduler, data_gen, loss_gen, history, ema)
+        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+            ranks = rank_states(data_gen, loss_gen, running, grad_norms, world)
+            if main:
+                save_checkpoint(out, done, policy, optimizer, scheduler, ranks, history, ema)
     if bar is not None:
         bar.close()
     final = out / FINAL
