@@ -232,8 +232,9 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
 
 
 def test_shaping_is_potential_based_and_telescopes():
-    """On a real rollout, the discounted shaping of each episode sums to −Φ(s₀) when it ends in
-    success and to γ^n·Φ(s_n) − Φ(s₀) at a time limit: it cannot change which policy is best."""
+    """On a real rollout, the discounted shaping of each episode sums to 0 when it ends in success
+    and to γ^n·Φ(s_n) at a time limit (Φ(s₀) = 0, independent of the first action): it cannot
+    change which policy is best."""
     envs = [make_env("reach-v3") for _ in range(2)]
     gen = torch.Generator().manual_seed(0)
 
@@ -248,7 +249,8 @@ def test_shaping_is_potential_based_and_telescopes():
         n = end - start + 1
         total = sum(gamma ** i * float(f[start + i]) for i in range(n))
         tail = 0.0 if ro.terminal[end] else gamma ** n * float(ro.reward_after[end]) / 10
-        assert total == pytest.approx(tail - float(ro.reward_before[start]) / 10, abs=1e-5)
+        assert float(ro.reward_before[start]) == 0.0
+        assert total == pytest.approx(tail, abs=1e-5)
 
 
 def test_group_advantages_compare_episodes_of_one_layout():
@@ -611,3 +613,99 @@ def test_finetune_with_chunks_cut_by_the_episode_cap_stays_on_policy(tmp_path):
                  "--eval-episodes", "1", "--minibatch-size", "4", "--group-size", "2", "--reward", "success"]) == 0
     history = json.loads((out / "finetune_log.json").read_text())["history"]
     assert history and all(h["ratio_dev_before_update"] <= 1e-4 for h in history)
+
+
+def test_adaptive_rate_comes_down_when_the_kl_stop_ends_an_iteration():
+    """An approximate KL between 1.5 and 2 × target stops the epochs; the rate that got there must not rise."""
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    data = _ppo_data(policy)
+    kl = {"value": 0.0}
+    cfg = SimpleNamespace(trained_steps=5, ppo_epochs=4, minibatch_size=4, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.0, target_kl=0.05, vf_coef=0.5, grad_clip=1.0,
+                          lr_schedule="adaptive", lr_warmup_updates=0, lr=1e-4)
+    opt = torch.optim.Adam([{"params": list(policy.model.parameters()), "lr": 1e-4}])
+    real = ppo.k3_kl
+    calls = []
+
+    def kl_after_the_first(x):                      # 1.8 × target from the second minibatch on
+        calls.append(1)
+        return real(x) if len(calls) == 1 else torch.full_like(real(x), 0.09)
+
+    ppo.k3_kl = kl_after_the_first
+    try:
+        stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+    finally:
+        ppo.k3_kl = real
+    assert stats["updates"] == 1 and opt.param_groups[0]["lr"] == pytest.approx(1e-4 / ppo.LR_STEP)
+
+
+def test_sac_kl_penalty_uses_the_k2_term_whose_gradient_is_kl_from_the_policy(monkeypatch):
+    """SAC's penalty, like PPO's, back-propagates `ppo.kl_penalty` (k2: ∇KL(π_θ ‖ π_BC) on π_θ's chains,
+    tested in closed form above); k3 would give the reverse KL's gradient."""
+    used = []
+    real = ppo.kl_penalty
+    monkeypatch.setattr(ppo, "kl_penalty", lambda lp, ref: used.append(lp.requires_grad) or real(lp, ref))
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
+    reference = finetune_policy(_bc(), sigma=0.5, learn_sigma=False, steps=4).requires_grad_(False)
+    gen = torch.Generator().manual_seed(0)
+    buffer = ReplayBuffer(16)
+    buffer.add({"state": torch.randn(16, S, generator=gen), "progress": torch.rand(16, generator=gen),
+                "actions": torch.rand(16, H, D, generator=gen) * 2 - 1, "reward": torch.rand(16, generator=gen),
+                "next_state": torch.randn(16, S, generator=gen), "next_progress": torch.rand(16, generator=gen),
+                "done": torch.zeros(16, dtype=torch.bool)})
+    q, temperature = TwinQ(S, H * D), Temperature(0.01)
+    optimizers = {"q": torch.optim.Adam(q.parameters(), lr=1e-3), "alpha": torch.optim.Adam(temperature.parameters()),
+                  "actor": torch.optim.Adam(policy.parameters(), lr=1e-3)}
+    cfg = SimpleNamespace(sac_batch_size=6, sde_steps=4, gamma=0.99, grad_clip=1.0, kl_coef=0.1, trained_steps=4,
+                          alpha_lr=1e-2, tau=0.005)
+    stats = sac_update(policy, reference, q, make_target(q), temperature, optimizers, buffer, lambda st: {"state": st},
+                       cfg, gen)
+    assert used and all(used) and stats["kl_bc_update"] >= 0
+
+
+def test_a_sac_fine_tuned_policy_samples_the_squashed_actions_it_trained_on():
+    from action_decoder.rl.sde_policy import squash_to_box
+
+    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=3, squash=True).eval()
+    batch, noise = _batch(), torch.randn(6, 4, 4)
+    out = policy.sample(batch, sampler="sde", noise=noise, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(out.actions, squash_to_box(out.chain[:, -1], policy.normalizers["actions"])[0])
+    assert out.actions.abs().max() < 1
+    plain = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=3).eval()
+    assert not plain.config.action_squash
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--reward", "success", "--success-reward", "nan"], "--success-reward: expected a finite number"),
+    (["--success-reward", "-1"], "--success-reward: expected a positive reward"),
+    (["--shaping-scale", "nan"], "--shaping-scale: expected >= 0"),
+    (["--kl-coef", "nan"], "--kl-coef: expected >= 0"),
+    (["--sigma", "1e6"], "--sigma: expected a noise scale in [0.001, 10]"),
+    (["--sigma", "1e-30"], "--sigma: expected a noise scale"),
+    (["--algo", "sac", "--buffer-size", "4", "--sac-batch-size", "8"], "--buffer-size: expected at least --sac-batch-size (8)"),
+])
+def test_finetune_refuses_nan_and_out_of_range_numbers_in_one_line(tmp_path, capsys, args, words):
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    assert main(["finetune", "--checkpoint", str(ckpt), "--output-dir", str(tmp_path / "ft"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
+def test_finetune_resume_refuses_another_bc_checkpoint(tmp_path, capsys):
+    ckpt, other, out = tmp_path / "bc", tmp_path / "bc2", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    torch.manual_seed(1)
+    moved = _bc()
+    with torch.no_grad():
+        next(moved.parameters()).add_(0.1)
+    moved.save_pretrained(other)
+    args = ["finetune", "--output-dir", str(out), "--env-steps", "24", "--num-envs", "2", "--max-episode-steps", "12",
+            "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "1", "--minibatch-size", "4",
+            "--group-size", "2"]
+    assert main([*args, "--checkpoint", str(ckpt)]) == 0
+    capsys.readouterr()
+    assert main([*args, "--checkpoint", str(other), "--env-steps", "48", "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--checkpoint: " in err[0] and "other BC weights" in err[0], err
+    assert main([*args, "--checkpoint", str(ckpt), "--env-steps", "48", "--resume"]) == 0

@@ -48,7 +48,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "image_encoder_pretrained": None, "freeze_image_encoder": False, "image_shift": 0,
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
-    6: {"action_constant_below": SPREAD_FLOOR},
+    6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -165,6 +165,10 @@ class DecoderConfig:
     # scale. State dimensions take the floor below 0.01. Format-5 files, older than the field,
     # read as 0.01 (every action spread floored at 0.01).
     action_constant_below: float = ACTION_CONSTANT_BELOW
+    # tanh on every sampled chunk in environment units, into (−1, 1): what a policy fine-tuned with
+    # SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
+    # Format-5 files, older than the field, read as False.
+    action_squash: bool = False
     state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
                                  # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0
@@ -231,7 +235,7 @@ class DecoderConfig:
             raise ValueError("vlm_num_layers, vlm_head_dim, vlm_num_key_value_heads: expected all "
                              f"three set or all None, got {vlm}")
         for name in ("clip_sample", "flow_sde_use", "flow_sde_learn_sigma", "flow_sde_return_logprob",
-                     "flow_sde_logprob_sigma_only"):
+                     "flow_sde_logprob_sigma_only", "action_squash"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if self.clip_sample and self.normalization_mode == "mean_std":

@@ -397,7 +397,10 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         velocity = bound.flow_velocity
         out = PolicyOutput()
         if prev_chunk is not None:
-            prev = self.normalizers["actions"].normalize(prev_chunk.to(param.device, torch.float32))   # [B, L, D]
+            prev = prev_chunk.to(param.device, torch.float32)                                  # [B, L, D]
+            if cfg.action_squash:       # back through the squash: guidance acts on the chain's own units
+                prev = torch.atanh(prev.clamp(-1 + 1e-6, 1 - 1e-6))
+            prev = self.normalizers["actions"].normalize(prev)
             if self.rtc_horizon == "execution":
                 prev = prev[:, : delay + cfg.n_action_steps]                                   # [B, min(L, d + s), D]
             rtc = {"max_guidance_weight": cfg.rtc_guidance_weight, "schedule": cfg.rtc_schedule}
@@ -409,7 +412,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                 x = sample_ode_rtc(velocity, noise, prev, delay, steps, **rtc)
             else:
                 x = sample_meanflow_rtc(bound.avg_velocity, noise, prev, delay, steps, **rtc)
-            out.actions = self.normalizers["actions"].unnormalize(x)
+            out.actions = self._env_actions(x)
             out.actions[:, :delay] = prev_chunk[:, :delay].to(out.actions)      # exact, not round-tripped
             return out
         if chosen == "sde":
@@ -424,8 +427,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             x = sample_meanflow(bound.avg_velocity, noise, steps)
         else:
             x = sample_ddpm(bound.model_output, noise, cfg, steps)
-        out.actions = self.normalizers["actions"].unnormalize(x)
+        out.actions = self._env_actions(x)
         return out
+
+    def _env_actions(self, x: Tensor) -> Tensor:
+        """A sampled chunk [B, H, D] in environment units (squashed into (−1, 1) with `action_squash`)."""
+        actions = self.normalizers["actions"].unnormalize(x)
+        return torch.tanh(actions) if self.config.action_squash else actions
 
     def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor, reduce: str = "sum",
                        meanflow_velocity: Optional[str] = None) -> Tensor:

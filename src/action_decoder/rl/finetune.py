@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from ..evaluate import make_policy_fn
+from ..model_card import weights_digest
 from ..policy import ActionDecoderPolicy
 from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
                        save_final, write_checkpoint)
@@ -39,6 +40,9 @@ LAYOUT_STRIDE = 247_213
 """Start of seed s's layout stream: s × this, modulo the span. ≈ span / φ (golden ratio) and coprime
 with it, so the first 16 seeds start ≥ 13 769 layouts apart (32 seeds: 8 527), far more than a
 45-CPU-minute run plays (≈ 800)."""
+SIGMA_RANGE = (1e-3, 10.0)
+"""`--sigma` bounds: below, the chain's steps have no noise to explore with (densities overflow);
+above, its noise swamps the unit-scale normalised actions."""
 RUN_OPTIONS = frozenset({"checkpoint", "output_dir", "env_steps", "max_cpu_minutes", "eval_episodes", "eval_every",
                          "checkpoint_every", "resume", "wandb", "wandb_project"})
 """Options that set a run's budget, location or logging: `--resume` may change them; the others define the run."""
@@ -186,8 +190,20 @@ def _check(cfg: FinetuneConfig) -> None:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "lr_warmup_updates",
                  "shaping_scale", "max_cpu_minutes"):
-        if getattr(cfg, name) < 0:
+        if not getattr(cfg, name) >= 0:                 # NaN fails too
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
+    for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
+                 "sac_updates_per_decision", "success_reward", "kl_coef", "shaping_scale"):
+        if not math.isfinite(getattr(cfg, name)):
+            raise ValueError(f"--{name.replace('_', '-')}: expected a finite number, got {getattr(cfg, name)}")
+    if not cfg.success_reward > 0:
+        raise ValueError(f"--success-reward: expected a positive reward for reaching success, got {cfg.success_reward}")
+    if not SIGMA_RANGE[0] <= cfg.sigma <= SIGMA_RANGE[1]:
+        raise ValueError(f"--sigma: expected a noise scale in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}] (actions are "
+                         f"normalised to unit scale), got {cfg.sigma}")
+    if cfg.algo == "sac" and cfg.buffer_size < cfg.sac_batch_size:
+        raise ValueError(f"--buffer-size: expected at least --sac-batch-size ({cfg.sac_batch_size}) transitions, or "
+                         f"SAC never updates; got {cfg.buffer_size}")
     if cfg.max_episode_steps > 500:
         raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
     if cfg.lr_warmup_updates and (cfg.algo != "ppo" or cfg.lr_schedule != "fixed"):
@@ -243,6 +259,9 @@ def _resolve_task(cfg: FinetuneConfig, trained: list[str]) -> tuple[str, int]:
     task = canonical_task(cfg.task)
     if len(trained) > 1 and task not in trained:
         raise ValueError(f"--task: {task} is not among the tasks this policy was trained on: {trained}")
+    if trained and task not in trained:
+        print(f"finetune: note: {task} is not the task this policy was trained on ({trained[0]}); fine-tuning it "
+              f"there keeps its state normalisation", flush=True)
     return task, trained.index(task) if len(trained) > 1 else 0
 
 
@@ -276,8 +295,9 @@ def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
 
 def shaping(ro, gamma: float) -> torch.Tensor:
     """γ·Φ(s′) − Φ(s) per decision [N], Φ = env reward / 10 (Meta-World's rewards lie in [0, 10]),
-    Φ(terminal) = 0. Summed over an episode it telescopes to −Φ(s₀) (plus the bootstrapped
-    tail at a time limit), so the policy it favours is the one the success reward favours."""
+    Φ(terminal) = 0 and Φ(s₀) = 0 (the env's reward at s₀ comes only with an action, which would make
+    the first term depend on it). Summed over an episode it telescopes to the bootstrapped tail at a
+    time limit, so the policy it favours is the one the success reward favours."""
     phi_next = torch.where(ro.terminal, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
     return gamma * phi_next - ro.reward_before / 10
 
@@ -327,7 +347,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     task, task_index = _resolve_task(cfg, trained)
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
-    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule, {"finetune": asdict(cfg)})
+    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule, {"finetune": asdict(cfg)},
+                             squash=cfg.algo == "sac")
     reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
     state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
     sigma_params = list(policy.sigma.parameters())
@@ -348,10 +369,15 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     iteration, env_steps, history, evals = 0, 0, [], []
 
+    bc_digest = weights_digest(bc.state_dict())
     if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
-        policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
         st = load_state(ckpt)
+        started = st.get("bc_weights_sha256")
+        if started is not None and started != bc_digest:
+            raise ValueError(f"--checkpoint: {cfg.checkpoint} holds other BC weights than the ones the run in {out} "
+                             f"started from (its KL reference and initial policy); resume with that BC checkpoint")
         _check_resumed_config(st.get("config"), cfg, ckpt)
+        policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
         critic.load_state_dict(st["critic"])
         for k, opt in optimizers.items():
             opt.load_state_dict(st["optimizers"][k])
@@ -468,7 +494,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             run_eval()
         if iteration % cfg.checkpoint_every == 0 or out_of_budget():
             state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
-                     "config": asdict(cfg),
+                     "config": asdict(cfg), "bc_weights_sha256": bc_digest,
                      "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
                      "gen": gen.get_state(), "rng": _rng_state()}
             if buffer is not None:

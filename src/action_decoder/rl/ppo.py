@@ -199,10 +199,13 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                 logs["ratio_mean"].append(float(ratio.mean()))
                 logs["ratio_min"].append(float(ratio.min()))
                 logs["ratio_max"].append(float(ratio.max()))
+                too_far = approx_kl > 1.5 * cfg.target_kl
                 if cfg.lr_schedule == "adaptive" and not first:    # the first minibatch precedes every update
                     group = optimizer.param_groups[0]
-                    group["lr"] = adapt_lr(group["lr"], approx_kl, cfg.target_kl, cfg.lr / 100, cfg.lr * 10)
-                if approx_kl > 1.5 * cfg.target_kl:    # too far from the rollout policy: stop here
+                    # The KL stop is a "too far" too: the rate that got there comes down, as past 2 × target.
+                    group["lr"] = adapt_lr(group["lr"], max(approx_kl, 2.01 * cfg.target_kl) if too_far else approx_kl,
+                                           cfg.target_kl, cfg.lr / 100, cfg.lr * 10)
+                if too_far:                            # too far from the rollout policy: stop here
                     optimizer.zero_grad(set_to_none=True)
                     stop = True
                     break

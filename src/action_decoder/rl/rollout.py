@@ -33,7 +33,7 @@ class Rollout:
     progress: Tensor        # [N] env steps done before the decision / max_steps
     next_progress: Tensor   # [N]
     env_rewards: Tensor     # [N] sum of env rewards over the executed steps
-    reward_before: Tensor   # [N] env reward of the step before the decision (first decision: its first step)
+    reward_before: Tensor   # [N] env reward of the step before the decision (first decision: 0, whatever it does)
     reward_after: Tensor    # [N] env reward of the decision's last step
     success: Tensor         # [N] bool: the success flag was raised during this decision
     terminal: Tensor        # [N] bool: the episode ended in a terminal state (success with stop_on_success)
@@ -62,13 +62,14 @@ def collect(envs: list, seeds: list[int], act: ActFn, n_action_steps: int, max_s
         chunks = np.clip(np.asarray(chunks)[:, :n_action_steps], -1.0, 1.0)
         still = []
         for j, e in enumerate(active):
-            state, reward, success, before, executed = obs[e].copy(), 0.0, False, latest[e], 0
+            # The first decision's "before" is 0: the reward after its first action would depend on that action.
+            state, reward, success, executed = obs[e].copy(), 0.0, False, 0
+            before = 0.0 if latest[e] is None else latest[e]
             for action in chunks[j]:
                 o, r, _, _, info = envs[e].step(action)
                 executed += 1
                 obs[e], steps[e], reward = o, steps[e] + 1, reward + float(r)
                 latest[e] = float(r)
-                before = latest[e] if before is None else before
                 success = success or bool(info["success"])
                 if (success and stop_on_success) or steps[e] >= max_steps:
                     break

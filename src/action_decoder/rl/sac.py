@@ -127,9 +127,10 @@ def sac_update(policy, reference, q, q_target, temperature: Temperature, optimiz
             lp = rescore_chain(policy, batch, chain, res.grid)
             with torch.no_grad():
                 lp_ref = rescore_chain(reference, batch, chain, res.grid)
-            kl = k3_kl(lp_ref - lp)[:, trained_slice(chain.shape[1] - 1, cfg.trained_steps)].mean()
-            loss = loss + cfg.kl_coef * kl
-            parts["kl_bc_update"] += w * float(kl.detach())
+            credited = trained_slice(chain.shape[1] - 1, cfg.trained_steps)
+            # k2's gradient is ∇KL(π_θ ‖ π_BC) on chains π_θ sampled (k3's would be the reverse KL's); k3 is logged.
+            loss = loss + cfg.kl_coef * ppo.kl_penalty(lp[:, credited], lp_ref[:, credited]).mean()
+            parts["kl_bc_update"] += w * float(k3_kl(lp_ref - lp.detach())[:, credited].mean())
         (w * loss).backward()
         parts["actor_loss"] += w * float(loss.detach())
         logps.append(logp.detach())

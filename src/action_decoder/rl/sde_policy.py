@@ -21,14 +21,15 @@ from ..policy import ActionDecoderPolicy
 
 
 def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, steps: int,
-                    schedule: str = "explore", extra: Optional[dict] = None) -> ActionDecoderPolicy:
+                    schedule: str = "explore", extra: Optional[dict] = None, squash: bool = False) -> ActionDecoderPolicy:
     """A copy of a BC policy that samples with an SDE: σ(t) = a·√((1−t)/t) ("explore") or a
     ("fixed"), a = `sigma`, times a learnable multiplier (starting at exactly 1) when
     `learn_sigma`; K = `steps`, for the SDE (`flow_sde_num_steps`) and the ODE alike
     (`num_inference_timesteps`: fine-tuning evaluates its deterministic policy at that K too).
 
     The saved config has flow_sde_use=True so `action-decoder eval` samples the chain that was
-    optimised by default (`--sampler ode` gives the deterministic policy).
+    optimised by default (`--sampler ode` gives the deterministic policy), and `action_squash` =
+    `squash` (SAC executes tanh-squashed actions, `squash_to_box`), so it executes what was trained.
     """
     if bc.config.decoder_type == "DDPM":
         raise ValueError("--checkpoint: RL fine-tuning needs a flow_matching or mean_flow decoder (its SDE "
@@ -36,6 +37,7 @@ def finetune_policy(bc: ActionDecoderPolicy, sigma: float, learn_sigma: bool, st
     cfg = replace(bc.config, flow_sde_use=True, flow_sde_mode=schedule, flow_sde_s_churn=float(sigma),
                   flow_sde_learn_sigma=bool(learn_sigma), flow_sde_sigma_init=1.0,
                   num_inference_timesteps=int(steps), flow_sde_num_steps=int(steps), flow_sde_return_logprob=False,
+                  action_squash=bool(squash),
                   extra={**bc.config.extra, **(extra or {})})
     policy = ActionDecoderPolicy(cfg)
     weights = {k: v for k, v in bc.state_dict().items() if not k.startswith("sigma.")}
