@@ -427,10 +427,9 @@ def test_approx_kl_stays_finite_where_a_step_density_collapses():
     assert stats["ratio_min"] == 0.0 and "kl_bc_update" not in stats
 
 
-def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
-    """SAC's actor loss (K network calls per row) is back-propagated per micro-batch of
-    MICROBATCH_ROW_CALLS // sde_steps rows; the update still uses the whole batch."""
-    monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", 8)                 # 8 // 4 steps = 2 rows
+def _sac_setup():
+    """A SAC update's parts on the tiny BC policy: policy, reference, twin Q, temperature, optimizers,
+    a filled replay buffer of 16 chunk transitions, config and generator."""
     policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
     reference = finetune_policy(_bc(), sigma=0.5, learn_sigma=False, steps=4).requires_grad_(False)
     gen = torch.Generator().manual_seed(0)
@@ -444,6 +443,14 @@ def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
                   "actor": torch.optim.Adam(policy.parameters(), lr=1e-3)}
     cfg = SimpleNamespace(sac_batch_size=6, sde_steps=4, gamma=0.99, grad_clip=1.0, kl_coef=0.1, trained_steps=4,
                           alpha_lr=1e-2, tau=0.005)
+    return policy, reference, q, temperature, optimizers, buffer, cfg, gen
+
+
+def test_sac_actor_back_propagates_per_micro_batch(monkeypatch):
+    """SAC's actor loss (K network calls per row) is back-propagated per micro-batch of
+    MICROBATCH_ROW_CALLS // sde_steps rows; the update still uses the whole batch."""
+    monkeypatch.setattr(ppo, "MICROBATCH_ROW_CALLS", 8)                 # 8 // 4 steps = 2 rows
+    policy, reference, q, temperature, optimizers, buffer, cfg, gen = _sac_setup()
     rows, forward = [], policy.model.forward
     monkeypatch.setattr(policy.model, "forward",
                         lambda x, *a, **k: rows.append(x.shape[0] * torch.is_grad_enabled()) or forward(x, *a, **k))
@@ -645,19 +652,7 @@ def test_sac_kl_penalty_uses_the_k2_term_whose_gradient_is_kl_from_the_policy(mo
     used = []
     real = ppo.kl_penalty
     monkeypatch.setattr(ppo, "kl_penalty", lambda lp, ref: used.append(lp.requires_grad) or real(lp, ref))
-    policy = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=4)
-    reference = finetune_policy(_bc(), sigma=0.5, learn_sigma=False, steps=4).requires_grad_(False)
-    gen = torch.Generator().manual_seed(0)
-    buffer = ReplayBuffer(16)
-    buffer.add({"state": torch.randn(16, S, generator=gen), "progress": torch.rand(16, generator=gen),
-                "actions": torch.rand(16, H, D, generator=gen) * 2 - 1, "reward": torch.rand(16, generator=gen),
-                "next_state": torch.randn(16, S, generator=gen), "next_progress": torch.rand(16, generator=gen),
-                "done": torch.zeros(16, dtype=torch.bool)})
-    q, temperature = TwinQ(S, H * D), Temperature(0.01)
-    optimizers = {"q": torch.optim.Adam(q.parameters(), lr=1e-3), "alpha": torch.optim.Adam(temperature.parameters()),
-                  "actor": torch.optim.Adam(policy.parameters(), lr=1e-3)}
-    cfg = SimpleNamespace(sac_batch_size=6, sde_steps=4, gamma=0.99, grad_clip=1.0, kl_coef=0.1, trained_steps=4,
-                          alpha_lr=1e-2, tau=0.005)
+    policy, reference, q, temperature, optimizers, buffer, cfg, gen = _sac_setup()
     stats = sac_update(policy, reference, q, make_target(q), temperature, optimizers, buffer, lambda st: {"state": st},
                        cfg, gen)
     assert used and all(used) and stats["kl_bc_update"] >= 0
