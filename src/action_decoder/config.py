@@ -39,7 +39,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 6
+CONFIG_FORMAT_VERSION = 7
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -49,6 +49,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
+    7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -169,6 +170,12 @@ class DecoderConfig:
     # SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
     # Format-5 files, older than the field, read as False.
     action_squash: bool = False
+    # A noise actor (`noise_actor.NoiseActor`, trained by `finetune --algo dsrl`): an MLP of this width
+    # maps the state (and pooled context) to the sampler's initial noise chunk, so that the decoder's
+    # deterministic sampler turns it into the chunk. 0: none; the noise is N(0, I). Format-6 files read 0.
+    noise_actor_hidden: int = 0
+    # The actor's noise lies in (−b, b) per element (b·tanh(w/b), close to w inside ±b/2).
+    noise_actor_bound: float = 2.5
     state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
                                  # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0
@@ -212,6 +219,11 @@ class DecoderConfig:
             _positive_float(name, getattr(self, name))
         _positive_float("meanflow_adaptive_p", self.meanflow_adaptive_p, allow_zero=True)
         _positive_float("action_constant_below", self.action_constant_below, allow_zero=True)
+        if isinstance(self.noise_actor_hidden, bool) or not isinstance(self.noise_actor_hidden, int) or \
+                self.noise_actor_hidden < 0:
+            raise ValueError(f"noise_actor_hidden: expected a width >= 0 (0: no noise actor), "
+                             f"got {self.noise_actor_hidden!r}")
+        _positive_float("noise_actor_bound", self.noise_actor_bound)
         _finite("meanflow_time_mean", self.meanflow_time_mean)
         if not 0.0 <= self.meanflow_ratio_r_neq_t <= 1.0:
             raise ValueError(f"meanflow_ratio_r_neq_t: expected a fraction in [0, 1], "

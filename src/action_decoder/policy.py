@@ -28,6 +28,7 @@ from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, m
                     sample_sde_rtc, velocity_from_meanflow,
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
+from .noise_actor import NoiseActor
 from .normalize import make_normalizers
 from .state_layout import network_state
 
@@ -82,6 +83,10 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                             config.normalization_mode, stats, config.action_constant_below)
         # The noise schedule is a submodule so that a learnable σ is a policy parameter.
         self.sigma = make_sigma(config)
+        # The initial-noise policy of a noise-space fine-tuned checkpoint (`finetune --algo dsrl`).
+        self.noise_actor = NoiseActor(config.state_dim, config.context_dim, config.action_chunk_size,
+                                      config.action_dim, config.noise_actor_hidden, config.noise_actor_bound) \
+            if config.noise_actor_hidden else None
         self._queue: deque = deque()
         self._warned_proxy = self._warned_steps = False
 
@@ -358,7 +363,9 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         is the velocity a mean_flow decoder integrates with sampler "sde" or "euler"; re-score
         its chains with the same choice (`chain_log_prob(..., meanflow_velocity=...)`).
         `generator` is one torch.Generator or a list of one per row: then row b's noise (and the
-        SDE's ε) come from generator[b] alone, whatever else shares the batch.
+        SDE's ε) come from generator[b] alone, whatever else shares the batch. A policy with a noise
+        actor (`config.noise_actor_hidden`) starts from the actor's deterministic noise instead;
+        an explicit `noise` overrides either.
         Log-probs (sampler "sde") are the density of the returned chain; with
         `flow_sde_logprob_sigma_only` their gradient reaches σ only (reparameterised, SAC),
         without it the chain is data and the gradient reaches the network through the means
@@ -391,7 +398,9 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             raise ValueError("return_logprob: not available with prev_chunk (a guided chain has no chain_log_prob "
                              "to re-score it); pass return_logprob=False")
         param = next(self.model.parameters())
-        if noise is None:
+        if noise is None and self.noise_actor is not None:
+            noise = self.noise_actor.act(**self.noise_actor_inputs(batch))           # [B, H, D]
+        elif noise is None:
             noise = randn_rows(bound.batch_size, (cfg.action_chunk_size, cfg.action_dim), generator,
                                param.device)                                        # [B, H, D]
         velocity = bound.flow_velocity
@@ -429,6 +438,14 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             x = sample_ddpm(bound.model_output, noise, cfg, steps)
         out.actions = self._env_actions(x)
         return out
+
+    def noise_actor_inputs(self, batch: Mapping[str, Any]) -> dict:
+        """What the noise actor reads from a (validated) batch: the normalised state [B, S] and the
+        context tokens with their mask, if any."""
+        param = next(self.model.parameters())
+        return {"state": self.normalizers["state"].normalize(batch["state"].to(param.device, torch.float32)),
+                "context": _to(batch.get("context"), param.device),
+                "context_mask": _to(batch.get("context_mask"), param.device)}
 
     def _env_actions(self, x: Tensor) -> Tensor:
         """A sampled chunk [B, H, D] in environment units (squashed into (−1, 1) with `action_squash`)."""

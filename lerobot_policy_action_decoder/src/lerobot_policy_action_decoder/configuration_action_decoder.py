@@ -71,6 +71,9 @@ class ActionDecoderConfig(PreTrainedConfig):
     image_encoder_pretrained: str | None = None
     freeze_image_encoder: bool = False
     image_shift: int = 0
+    # A noise actor steering the frozen decoder (`action-decoder finetune --algo dsrl`); 0: none, N(0, I) noise.
+    noise_actor_hidden: int = 0
+    noise_actor_bound: float = 2.5
     # Task strings, by task index (filled from the dataset).
     tasks: list[str] = field(default_factory=list)
 

@@ -31,7 +31,7 @@ SHARED = ("decoder_type", "n_action_steps", "flow_sde_num_steps", "num_train_tim
           "meanflow_target",
           "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads",
           "image_size", "image_encoder", "image_tokens_per_camera", "image_encoder_pretrained",
-          "freeze_image_encoder", "image_shift")
+          "freeze_image_encoder", "image_shift", "noise_actor_hidden", "noise_actor_bound")
 
 
 def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str, Any]) -> tuple[int, int]:

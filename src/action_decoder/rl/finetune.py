@@ -1,8 +1,9 @@
-"""`action-decoder finetune`: RL fine-tuning of a BC flow checkpoint through its SDE sampler.
+"""`action-decoder finetune`: RL fine-tuning of a BC checkpoint, through its SDE sampler (PPO, SAC)
+or in its noise space (DSRL: a noise actor steers the frozen decoder, `rl/dsrl.py`).
 
 One iteration = one episode on each of `num_envs` lockstep envs (layouts seeded from the
-iteration number, below the evaluation seeds), then PPO epochs on the stored chains or
-SAC steps on a replay buffer. Checkpoints (`checkpoints/step_N`, `checkpoints/last`) are
+iteration number, below the evaluation seeds), then PPO epochs on the stored chains, or
+SAC / DSRL steps on a replay buffer. Checkpoints (`checkpoints/step_N`, `checkpoints/last`) are
 written atomically at iteration boundaries with the critic, optimisers, generators and
 history, so `--resume` continues exactly. The result (`final/`) is a `save_pretrained`
 directory that `action-decoder eval` reads; it samples with the fine-tuned SDE by default.
@@ -13,7 +14,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -22,12 +23,14 @@ import torch
 
 from ..evaluate import make_policy_fn
 from ..model_card import weights_digest
+from ..noise_actor import kl_to_prior
 from ..policy import ActionDecoderPolicy
 from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
                        save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import TwinQ, ValueNet
+from .dsrl import dsrl_policy, dsrl_update, noise_actor_fn
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, Temperature, make_target, sac_update
@@ -58,12 +61,13 @@ def train_layout_seeds(seed: int, iteration: int, num_envs: int, group_size: int
 
 @dataclass
 class FinetuneConfig:
-    """Fine-tune a flow-matching or MeanFlow BC checkpoint with RL on its Meta-World task."""
+    """Fine-tune a BC checkpoint with RL on its Meta-World task."""
 
     checkpoint: str
-    """A `save_pretrained` directory of a flow_matching or mean_flow policy (e.g. outputs/train/final)."""
+    """A `save_pretrained` directory of a BC policy (e.g. outputs/train/final); PPO and SAC need flow_matching or mean_flow."""
     output_dir: str = "outputs/finetune"
-    algo: Literal["ppo", "sac"] = "ppo"
+    algo: Literal["ppo", "sac", "dsrl"] = "ppo"
+    """"ppo" or "sac": the decoder's weights through its SDE chain; "dsrl": a noise actor steering the frozen decoder."""
     task: Optional[str] = None
     """Task to fine-tune on (default: the checkpoint's task; required for multi-task checkpoints)."""
     env_steps: int = 100_000
@@ -71,8 +75,8 @@ class FinetuneConfig:
     max_cpu_minutes: float = 0.0
     """Also stop at the first iteration boundary past this much CPU time of fine-tuning (0: no
     limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
-    num_envs: int = 32
-    """Lockstep envs; each iteration runs one episode on each."""
+    num_envs: Optional[int] = None
+    """Lockstep envs; each iteration runs one episode on each (default 32; 8 with DSRL)."""
     group_size: Optional[int] = None
     """PPO: episodes per training layout (default 4). Above 1, advantages are GRPO-style (each decision's
     reward-to-go against the other episodes of its layout, see `ppo.group_advantages`) instead of
@@ -139,7 +143,7 @@ class FinetuneConfig:
     """PPO: stop an iteration's epochs when the approximate KL to the rollout policy exceeds 1.5×this."""
     vf_coef: float = 0.5
     kl_coef: float = 0.0
-    """Weight of KL(π_θ ‖ π_BC) on the chains (0: off; the KL is still logged)."""
+    """Weight of KL(π_θ ‖ π_BC) on the chains; DSRL: of the noise actor's KL to N(0, I) per element (0: off)."""
     critic_warmup_iters: Optional[int] = None
     """PPO with the critic (`--group-size 1`): first iterations train only the value head (default 1).
     Group advantages do not use the value head, so with `--group-size` above 1 the policy updates
@@ -153,10 +157,21 @@ class FinetuneConfig:
     must outpace σ's drift under the entropy term (Adam moves log σ by up to `sigma_lr` per update)."""
     target_entropy: Optional[float] = None
     """SAC: entropy per action dimension that α holds (default: the initial policy's, so exploration
-    stays where `--sigma` puts it)."""
+    stays where `--sigma` puts it); DSRL: per noise element (default 0)."""
     tau: float = 0.005
     sac_batch_size: int = 128
-    sac_updates_per_decision: float = 0.5
+    sac_updates_per_decision: Optional[float] = None
+    """SAC and DSRL: gradient steps per stored decision (default 0.5 with SAC, 4 with DSRL)."""
+    steps: Optional[int] = None
+    """DSRL: the frozen decoder's sampling steps (default: the checkpoint's num_inference_timesteps)."""
+    noise_critic: Literal["noise", "action"] = "noise"
+    """DSRL: Q on the noise (DSRL-SAC) or on the executed actions with noise aliasing (DSRL-NA)."""
+    noise_hidden: int = 256
+    """DSRL: width of the noise actor's two hidden layers."""
+    noise_bound: float = 2.5
+    """DSRL: the actor's noise lies in (−b, b) per element."""
+    noise_lr: float = 3e-4
+    """DSRL: learning rate of the noise actor."""
     buffer_size: int = 100_000
     grad_clip: float = 1.0
     eval_episodes: int = 20
@@ -171,21 +186,34 @@ class FinetuneConfig:
     wandb_project: str = "action-decoder"
 
 
+ALGO_DEFAULTS = {"num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
+                 "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 4.0}}
+"""The values an option left at None takes, per algorithm."""
+DSRL_TARGET_ENTROPY = 0.0
+"""DSRL's default entropy per noise element (a Gaussian of std ≈ 0.24)."""
+
+
+def with_defaults(cfg: FinetuneConfig) -> FinetuneConfig:
+    """`cfg` with the options left at None set to their algorithm's default (`ALGO_DEFAULTS`)."""
+    return replace(cfg, **{k: v[cfg.algo] for k, v in ALGO_DEFAULTS.items()
+                           if getattr(cfg, k) is None and cfg.algo in v})
+
+
 def episodes_per_layout(cfg: FinetuneConfig) -> int:
-    """Episodes per training layout: `--group-size`, by default 4 with PPO and 1 with SAC."""
+    """Episodes per training layout: `--group-size`, by default 4 with PPO and 1 with SAC and DSRL."""
     return cfg.group_size if cfg.group_size is not None else 4 if cfg.algo == "ppo" else 1
 
 
 def _check(cfg: FinetuneConfig) -> None:
     if cfg.group_size is not None and cfg.algo != "ppo":
-        raise ValueError(f"--group-size: only with --algo ppo (SAC plays one layout per env), got {cfg.group_size} "
-                         f"with --algo {cfg.algo}")
+        raise ValueError(f"--group-size: only with --algo ppo (SAC and DSRL play one layout per env), got "
+                         f"{cfg.group_size} with --algo {cfg.algo}")
     for name in ("env_steps", "num_envs", "group_size", "max_episode_steps", "sde_steps", "ppo_epochs", "minibatch_size",
-                 "sac_batch_size", "buffer_size", "checkpoint_every"):
+                 "sac_batch_size", "buffer_size", "checkpoint_every", "steps", "noise_hidden"):
         if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
     for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
-                 "sac_updates_per_decision"):
+                 "sac_updates_per_decision", "noise_bound", "noise_lr"):
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "lr_warmup_updates",
@@ -193,7 +221,7 @@ def _check(cfg: FinetuneConfig) -> None:
         if not getattr(cfg, name) >= 0:                 # NaN fails too
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
-                 "sac_updates_per_decision", "success_reward", "kl_coef", "shaping_scale"):
+                 "sac_updates_per_decision", "success_reward", "kl_coef", "shaping_scale", "noise_bound", "noise_lr"):
         if not math.isfinite(getattr(cfg, name)):
             raise ValueError(f"--{name.replace('_', '-')}: expected a finite number, got {getattr(cfg, name)}")
     if not cfg.success_reward > 0:
@@ -201,9 +229,11 @@ def _check(cfg: FinetuneConfig) -> None:
     if not SIGMA_RANGE[0] <= cfg.sigma <= SIGMA_RANGE[1]:
         raise ValueError(f"--sigma: expected a noise scale in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}] (actions are "
                          f"normalised to unit scale), got {cfg.sigma}")
-    if cfg.algo == "sac" and cfg.buffer_size < cfg.sac_batch_size:
+    if cfg.algo != "ppo" and cfg.buffer_size < cfg.sac_batch_size:
         raise ValueError(f"--buffer-size: expected at least --sac-batch-size ({cfg.sac_batch_size}) transitions, or "
-                         f"SAC never updates; got {cfg.buffer_size}")
+                         f"{cfg.algo.upper()} never updates; got {cfg.buffer_size}")
+    if cfg.target_entropy is not None and not math.isfinite(cfg.target_entropy):
+        raise ValueError(f"--target-entropy: expected a finite number, got {cfg.target_entropy}")
     if cfg.max_episode_steps > 500:
         raise ValueError(f"--max-episode-steps: Meta-World caps episodes at 500 steps, got {cfg.max_episode_steps}")
     if cfg.lr_warmup_updates and (cfg.algo != "ppo" or cfg.lr_schedule != "fixed"):
@@ -275,15 +305,16 @@ def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
     axes[0].plot(x, [h["success"] for h in history], alpha=0.4, label="training episodes (SDE)")
     for sampler, marker in (("sde", "o"), ("ode", "s")):
-        pts = [(e["env_steps"], e[f"success_{sampler}"]) for e in evals]
+        pts = [(e["env_steps"], e[f"success_{sampler}"]) for e in evals if f"success_{sampler}" in e]
         if pts:
             axes[0].plot(*zip(*pts), marker=marker, label=f"eval ({sampler})")
     axes[0].set(xlabel="env steps", ylabel="success", ylim=(-0.02, 1.02), title=title)
     axes[0].legend(fontsize=7)
     axes[1].plot(x, [h["return"] for h in history])
     axes[1].set(xlabel="env steps", ylabel="episode return (env reward)")
-    axes[2].plot(x, [h["sigma_mult"] for h in history], label="σ multiplier")
-    axes[2].plot(x, [h["kl_bc"] for h in history], label="KL to BC (per step)")
+    if all("sigma_mult" in h for h in history):
+        axes[2].plot(x, [h["sigma_mult"] for h in history], label="σ multiplier")
+    axes[2].plot(x, [h["kl_bc"] for h in history], label="KL to BC (per step; DSRL: noise actor to N(0, I))")
     axes[2].set(xlabel="env steps")
     axes[2].legend(fontsize=7)
     for ax in axes:
@@ -329,9 +360,33 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
     return act
 
 
+def _dsrl_iteration(policy, critics: dict, temperature, optimizers: dict, buffer: ReplayBuffer, make_batch, cfg,
+                    gen: torch.Generator, ro, rewards: torch.Tensor, out_of_budget) -> tuple[dict, float]:
+    """Store an iteration's decisions, then `sac_updates_per_decision` DSRL steps per decision (the last one
+    where the CPU budget runs out). Returns the mean update statistics and `kl_bc`: the actor's KL to N(0, I)
+    per noise element on the iteration's states, which bounds the KL of its chunks to the BC policy's."""
+    rec = ro.records
+    buffer.add({"state": ro.states, "progress": ro.progress, "noise": rec["noise"], "actions": rec["actions"],
+                "reward": rewards, "next_state": ro.next_states, "next_progress": ro.next_progress,
+                "done": episode_ends(ro)})
+    stats = {}
+    if buffer.size >= cfg.sac_batch_size:
+        runs = []
+        for _ in range(max(1, int(cfg.sac_updates_per_decision * len(rewards)))):
+            runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen))
+            if out_of_budget():
+                break
+        stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+        stats["updates"] = len(runs)
+    with torch.no_grad():
+        mean, log_std = policy.noise_actor(**policy.noise_actor_inputs(make_batch(ro.states)))
+    return stats, float(kl_to_prior(mean, log_std).mean())
+
+
 def finetune(cfg: FinetuneConfig) -> Path:
     """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
     locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once."""
+    cfg = with_defaults(cfg)
     _check(cfg)
     with run_dir_lock(Path(cfg.output_dir)):
         return _finetune(cfg)
@@ -347,15 +402,32 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     task, task_index = _resolve_task(cfg, trained)
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
-    policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule, {"finetune": asdict(cfg)},
-                             squash=cfg.algo == "sac")
-    reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
+    dsrl = cfg.algo == "dsrl"
+    if dsrl:
+        policy = dsrl_policy(bc, cfg.noise_hidden, cfg.noise_bound, cfg.steps, {"finetune": asdict(cfg)})
+        reference = None
+    else:
+        policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule,
+                                 {"finetune": asdict(cfg)}, squash=cfg.algo == "sac")
+        reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
     state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
     sigma_params = list(policy.sigma.parameters())
     groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
     groups += [{"params": sigma_params, "lr": cfg.sigma_lr}] if sigma_params else []
-    buffer = None
-    if cfg.algo == "ppo":
+    buffer, critics = None, {}
+    if dsrl:
+        critic = TwinQ(state_dim, policy.config.action_chunk_size * policy.config.action_dim)    # Q(s, w)
+        critics = {"q": critic, "q_target": make_target(critic)}
+        temperature = Temperature(cfg.alpha, DSRL_TARGET_ENTROPY if cfg.target_entropy is None else cfg.target_entropy)
+        optimizers = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=cfg.noise_lr),
+                      "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
+                      "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
+        if cfg.noise_critic == "action":
+            q_action = TwinQ(state_dim, n_exec * policy.config.action_dim)                        # Q_A(s, a)
+            critics.update(q_action=q_action, q_action_target=make_target(q_action))
+            optimizers["q_action"] = torch.optim.Adam(q_action.parameters(), lr=cfg.critic_lr)
+        buffer = ReplayBuffer(cfg.buffer_size)
+    elif cfg.algo == "ppo":
         critic = ValueNet(state_dim)
         optimizers = {"main": torch.optim.Adam(groups + [{"params": list(critic.parameters()),
                                                           "lr": cfg.critic_lr}])}
@@ -381,8 +453,11 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         critic.load_state_dict(st["critic"])
         for k, opt in optimizers.items():
             opt.load_state_dict(st["optimizers"][k])
+        for k, net in critics.items():
+            net.load_state_dict(st["critics"][k])
         if buffer is not None:
-            q_target.load_state_dict(st["q_target"])
+            if not dsrl:
+                q_target.load_state_dict(st["q_target"])
             temperature.load_state_dict(st["temperature"])
             buffer.load_state_dict(st["buffer"])
         gen.set_state(st["gen"])
@@ -409,17 +484,16 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         if not cfg.eval_episodes:
             return
         row = {"iteration": iteration, "env_steps": env_steps}
-        for sampler in ("sde", "ode"):
+        for sampler in ("ode",) if dsrl else ("sde", "ode"):
             fn = make_policy_fn(policy, num_tasks, sampler, cfg.sde_steps, torch.Generator().manual_seed(cfg.seed))
             res = evaluate(fn, task, episodes=cfg.eval_episodes, seed=cfg.seed, n_action_steps=n_exec,
                            max_steps=MAX_EPISODE_STEPS, num_envs=min(cfg.num_envs, cfg.eval_episodes),
                            task_index=task_index)
             row[f"success_{sampler}"] = res["success_rate"]
         evals.append(row)
-        logger.log(env_steps, {"success_sde": row["success_sde"], "success_ode": row["success_ode"]}, "eval",
-                   record=False)
-        print(f"eval @ {env_steps} env steps: success sde={row['success_sde']:.3f} ode={row['success_ode']:.3f}",
-              flush=True)
+        logger.log(env_steps, {k: v for k, v in row.items() if k.startswith("success_")}, "eval", record=False)
+        print(f"eval @ {env_steps} env steps: success " + " ".join(f"{k[8:]}={v:.3f}" for k, v in row.items()
+                                                                 if k.startswith("success_")), flush=True)
 
     if not evals:
         run_eval()
@@ -437,49 +511,55 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     while not out_of_budget():
         seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
         policy.eval()
-        act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
+        act = noise_actor_fn(policy, make_batch, gen) if dsrl else \
+            chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
         ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
         rec = ro.records
         rewards = decision_rewards(ro, cfg, n_exec)
         executed = ro.executed                                    # [N]: < n_exec where the episode ended mid-chunk
-        with torch.no_grad():
-            cut = executed < n_exec
-            if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
-                rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut], rec["grid"][0],
-                                                 cfg.logprob_reduce, executed[cut])
-            logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
-                                                rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
-                                  for i in range(0, len(rewards), 512)])
-        # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
-        # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
-        kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
-        norm = policy.normalizers["state"].normalize
-        if cfg.algo == "ppo":
-            with torch.no_grad():
-                values = critic(norm(ro.states), ro.progress)
-                next_values = critic(norm(ro.next_states), ro.next_progress)
-            adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
-            if group > 1:
-                adv = group_advantages(rewards, ro.last, cfg.gamma, group)
-            data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
-                    "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret,
-                    "executed": executed}
-            stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                               update_policy=group > 1 or iteration >= critic_warmup)
+        if dsrl:
+            stats, kl_rollout = _dsrl_iteration(policy, critics, temperature, optimizers, buffer, make_batch, cfg,
+                                                gen, ro, rewards, out_of_budget)
         else:
-            buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
-                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": episode_ends(ro)})
-            stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
-            if buffer.size >= cfg.sac_batch_size:
-                runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
-                                   gen) for _ in range(n_updates)]
-                stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+            with torch.no_grad():
+                cut = executed < n_exec
+                if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
+                    rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut], rec["grid"][0],
+                                                     cfg.logprob_reduce, executed[cut])
+                logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
+                                                    rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
+                                      for i in range(0, len(rewards), 512)])
+            # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
+            # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
+            kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
+            norm = policy.normalizers["state"].normalize
+            if cfg.algo == "ppo":
+                with torch.no_grad():
+                    values = critic(norm(ro.states), ro.progress)
+                    next_values = critic(norm(ro.next_states), ro.next_progress)
+                adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
+                if group > 1:
+                    adv = group_advantages(rewards, ro.last, cfg.gamma, group)
+                data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
+                        "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret,
+                        "executed": executed}
+                stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
+                                   update_policy=group > 1 or iteration >= critic_warmup)
+            else:
+                buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
+                            "next_state": ro.next_states, "next_progress": ro.next_progress, "done": episode_ends(ro)})
+                stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
+                if buffer.size >= cfg.sac_batch_size:
+                    runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
+                                       gen) for _ in range(n_updates)]
+                    stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
         iteration += 1
         env_steps += ro.env_steps
-        mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
+        mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma and not dsrl else 1.0
         row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
                "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), "sigma_mult": mult, "sigma_scale": cfg.sigma * mult, **stats,
+               "decisions": len(rewards), **({} if dsrl else {"sigma_mult": mult, "sigma_scale": cfg.sigma * mult}),
+               **stats,
                "kl_bc": kl_rollout,
                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
@@ -489,7 +569,7 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
                 f"epochs {row['epochs']} lr {row['lr']:.2e}" if "ratio_min" in row else ""
         print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
-              f"σ×{mult:.3f} kl_bc {kl_rollout:.4f}{ratio}", flush=True)
+              + ("" if dsrl else f"σ×{mult:.3f} ") + f"kl_bc {kl_rollout:.4f}{ratio}", flush=True)
         if cfg.eval_every and iteration % cfg.eval_every == 0:
             run_eval()
         if iteration % cfg.checkpoint_every == 0 or out_of_budget():
@@ -498,8 +578,10 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                      "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
                      "gen": gen.get_state(), "rng": _rng_state()}
             if buffer is not None:
-                state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict(),
-                             temperature=temperature.state_dict())
+                state.update(buffer=buffer.state_dict(), temperature=temperature.state_dict(),
+                             **({} if dsrl else {"q_target": q_target.state_dict()}))
+            if critics:
+                state["critics"] = {k: net.state_dict() for k, net in critics.items()}
             write_checkpoint(out, iteration, policy, state)
     if not evals or evals[-1]["iteration"] != iteration:
         run_eval()

@@ -30,21 +30,22 @@ from .sde_policy import rescore_chain, sample_chain, squash_to_box
 
 
 class ReplayBuffer:
-    """A ring buffer of chunk-level transitions (tensors on the CPU)."""
-
-    FIELDS = ("state", "progress", "actions", "reward", "next_state", "next_progress", "done")
+    """A ring buffer of chunk-level transitions (tensors on the CPU); its fields are those of the
+    first rows added (SAC: state, progress, actions, reward, next_state, next_progress, done;
+    DSRL adds the noise)."""
 
     def __init__(self, capacity: int):
         self.capacity, self.size, self.pos = capacity, 0, 0
         self.data: dict[str, Tensor] = {}
 
     def add(self, rows: dict) -> None:
-        n = len(rows["reward"])
+        n = len(next(iter(rows.values())))
         if not self.data:
-            self.data = {k: torch.zeros((self.capacity, *rows[k].shape[1:]), dtype=rows[k].dtype)
-                         for k in self.FIELDS}
+            self.data = {k: torch.zeros((self.capacity, *v.shape[1:]), dtype=v.dtype) for k, v in rows.items()}
+        if set(rows) != set(self.data):
+            raise ValueError(f"rows: expected the fields {sorted(self.data)}, got {sorted(rows)}")
         idx = (self.pos + torch.arange(n)) % self.capacity
-        for k in self.FIELDS:
+        for k in self.data:
             self.data[k][idx] = rows[k]
         self.pos, self.size = int((self.pos + n) % self.capacity), min(self.size + n, self.capacity)
 

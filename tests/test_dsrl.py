@@ -1,0 +1,235 @@
+"""Noise-space RL (`finetune --algo dsrl`): the noise actor's density and trust region against
+torch.distributions, the critic and actor updates against oracle critics, the replay buffer, a
+bit-exact resume, and the saved policy acting through the CLI, the core policy and the plugin's
+config mapping."""
+
+import json
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from torch.distributions import AffineTransform, Normal, TanhTransform, TransformedDistribution, kl_divergence
+
+from action_decoder import ActionDecoderPolicy, DecoderConfig
+from action_decoder.cli import main
+from action_decoder.noise_actor import NoiseActor, kl_to_prior
+from action_decoder.rl.dsrl import decode, dsrl_policy, dsrl_update
+from action_decoder.rl.sac import ReplayBuffer, Temperature, make_target
+from action_decoder.rl.critics import TwinQ
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_rl import D, H, S, _bc  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _actor(bound=2.5, seed=0):
+    torch.manual_seed(seed)
+    actor = NoiseActor(S, None, H, D, hidden=16, bound=bound)
+    for p in actor.head.parameters():              # away from the zero start, so mean and std vary
+        p.data.normal_(0, 0.3)
+    return actor
+
+
+def test_untrained_actor_draws_the_decoders_own_noise():
+    actor = NoiseActor(S, None, H, D, hidden=16, bound=2.5)
+    mean, log_std = actor(torch.randn(5, S))
+    assert mean.abs().max() == 0 and log_std.abs().max() < 1e-6
+    assert actor.act(torch.randn(5, S)).abs().max() == 0
+
+
+@pytest.mark.parametrize("bound", [0.7, 2.5])
+def test_noise_log_prob_is_the_bounded_gaussians_density(bound):
+    actor = _actor(bound)
+    state = torch.randn(6, S)
+    noise, logp, mean, log_std = actor.sample(state, generator=torch.Generator().manual_seed(3))
+    oracle = TransformedDistribution(Normal(mean.double(), log_std.double().exp()),
+                                     [AffineTransform(0.0, 1 / bound), TanhTransform(), AffineTransform(0.0, bound)])
+    inside = noise.double().clamp(-bound * (1 - 1e-7), bound * (1 - 1e-7))
+    expected = oracle.log_prob(inside).mean((-2, -1))
+    assert torch.allclose(logp.double(), expected, atol=1e-4)
+    assert noise.abs().max() < bound
+
+
+def test_kl_to_prior_matches_torch_distributions():
+    mean, log_std = torch.randn(3, H, D), 0.5 * torch.randn(3, H, D)
+    expected = kl_divergence(Normal(mean, log_std.exp()), Normal(0.0, 1.0)).mean((-2, -1))
+    assert torch.allclose(kl_to_prior(mean, log_std), expected, atol=1e-6)
+
+
+def test_policy_starts_from_the_actors_noise_and_reloads(tmp_path):
+    policy = dsrl_policy(_bc(), hidden=16, bound=2.5, steps=None)
+    for p in policy.noise_actor.head.parameters():
+        p.data.normal_(0, 0.3)
+    batch = {"state": torch.randn(3, S)}
+    noise = policy.noise_actor.act(**policy.noise_actor_inputs(batch))
+    chunk = policy.predict_action_chunk(batch)
+    assert torch.equal(chunk, policy.predict_action_chunk(batch, noise=noise))
+    assert not torch.equal(chunk, policy.predict_action_chunk(batch, noise=torch.zeros_like(noise)))
+    policy.save_pretrained(tmp_path)
+    again = ActionDecoderPolicy.from_pretrained(tmp_path)
+    assert torch.equal(again.predict_action_chunk(batch), chunk)
+    assert json.loads((tmp_path / "config.json").read_text())["noise_actor_hidden"] == 16
+    # the decoder is the BC decoder, frozen
+    bc = _bc()
+    assert all(torch.equal(a, b) for a, b in zip(policy.model.parameters(), bc.model.parameters()))
+    assert not any(p.requires_grad for p in policy.model.parameters())
+
+
+def test_a_format_6_config_reads_without_a_noise_actor(tmp_path):
+    cfg = DecoderConfig(decoder_type="flow_matching")
+    data = {**cfg.to_dict(), "format_version": 6}
+    del data["noise_actor_hidden"], data["noise_actor_bound"]
+    (tmp_path / "config.json").write_text(json.dumps(data))
+    old = DecoderConfig.from_json(tmp_path / "config.json")
+    assert old.noise_actor_hidden == 0 and ActionDecoderPolicy(old).noise_actor is None
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True])
+def test_config_refuses_a_bad_noise_actor_width(bad):
+    with pytest.raises(ValueError, match="^noise_actor_hidden: expected a width >= 0"):
+        DecoderConfig(noise_actor_hidden=bad)
+
+
+def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None):
+    policy = dsrl_policy(_bc(decoder), hidden=16, bound=2.5, steps=None)
+    gen = torch.Generator().manual_seed(0)
+    n = 16
+    buffer = ReplayBuffer(64)
+    buffer.add({"state": torch.randn(n, S, generator=gen), "progress": torch.rand(n, generator=gen),
+                "noise": torch.randn(n, H, D, generator=gen), "actions": torch.randn(n, H, D, generator=gen),
+                "reward": torch.rand(n, generator=gen) if reward is None else reward,
+                "next_state": torch.randn(n, S, generator=gen), "next_progress": torch.rand(n, generator=gen),
+                "done": torch.full((n,), done)})
+    q = TwinQ(S, H * D, hidden=32)
+    critics = {"q": q, "q_target": make_target(q)}
+    temperature = Temperature(0.01, 0.0)
+    opts = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=3e-3),
+            "q": torch.optim.Adam(q.parameters(), lr=3e-3), "alpha": torch.optim.Adam(temperature.parameters(), lr=0.0)}
+    if noise_critic == "action":
+        qa = TwinQ(S, H * D, hidden=32)
+        critics.update(q_action=qa, q_action_target=make_target(qa))
+        opts["q_action"] = torch.optim.Adam(qa.parameters(), lr=3e-3)
+    cfg = SimpleNamespace(sac_batch_size=16, gamma=0.9, tau=0.5, grad_clip=10.0, kl_coef=0.0, alpha_lr=0.0,
+                          noise_critic=noise_critic)
+    return policy, critics, temperature, opts, buffer, cfg, gen
+
+
+@pytest.mark.parametrize("noise_critic", ["noise", "action"])
+def test_critic_learns_the_reward_of_terminal_transitions(noise_critic):
+    """done everywhere: the TD target is the reward itself, whatever the actor does."""
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup(noise_critic)
+    make_batch = lambda s: {"state": s}                                     # noqa: E731
+    key = "q_action_loss" if noise_critic == "action" else "q_loss"
+    losses = [dsrl_update(policy, critics, temperature, opts, buffer, make_batch, cfg, gen)[key] for _ in range(100)]
+    assert losses[-1] < 0.05 * losses[0]
+    if noise_critic == "action":    # the noise critic follows Q_A through the decoder (aliasing)
+        b = {k: v[:buffer.size] for k, v in buffer.data.items()}
+        w = torch.randn(16, H, D, generator=gen)
+        qa = torch.min(*critics["q_action"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"],
+                                            decode(policy, {"state": b["state"]}, w)))
+        qw = torch.min(*critics["q"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"], w))
+        assert (qa - qw).abs().mean() < 0.5 * qa.abs().mean()
+
+
+def test_actor_climbs_an_oracle_critic():
+    """Q(s, w) = −|w − w*|²: the actor's deterministic noise moves to w*."""
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup()
+    target = 0.8 * torch.ones(H, D)
+
+    class Oracle(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.unused = torch.nn.Parameter(torch.zeros(()))       # the critic step has a parameter to step
+
+        def forward(self, state, progress, w):
+            q = -(w - target).square().sum((-2, -1)) + 0 * self.unused
+            return q, q
+
+    critics = {"q": Oracle(), "q_target": Oracle()}
+    opts["q"] = torch.optim.SGD(critics["q"].parameters(), lr=0.0)
+    state = buffer.data["state"][:16]
+    before = (policy.noise_actor.act(state) - target).abs().mean()
+    for _ in range(200):
+        dsrl_update(policy, critics, temperature, opts, buffer, lambda s: {"state": s}, cfg, gen)
+    after = (policy.noise_actor.act(state) - target).abs().mean()
+    assert before > 0.7 and after < 0.1
+
+
+def test_replay_buffer_wraps_round_trips_and_checks_fields():
+    buf = ReplayBuffer(5)
+    rows = lambda a, b: {"state": torch.arange(a, b).float()[:, None], "noise": torch.zeros(b - a, 2)}  # noqa: E731
+    buf.add(rows(0, 3))
+    buf.add(rows(3, 7))
+    assert buf.size == 5 and buf.pos == 2
+    assert sorted(buf.data["state"][:, 0].tolist()) == [2, 3, 4, 5, 6]
+    again = ReplayBuffer(1)
+    again.load_state_dict(buf.state_dict())
+    assert torch.equal(again.data["state"], buf.data["state"]) and again.pos == 2
+    with pytest.raises(ValueError, match="rows: expected the fields"):
+        buf.add({"state": torch.zeros(1, 1)})
+
+
+def _run(ckpt, out, *extra):
+    return main(["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--algo", "dsrl",
+                 "--num-envs", "2", "--max-episode-steps", "12", "--eval-episodes", "0", "--sac-batch-size", "4",
+                 "--checkpoint-every", "1", "--noise-hidden", "16", *extra])
+
+
+def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys):
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    assert _run(ckpt, tmp_path / "whole", "--env-steps", "72") == 0
+    assert _run(ckpt, tmp_path / "cut", "--env-steps", "48") == 0
+    assert _run(ckpt, tmp_path / "cut", "--env-steps", "72", "--resume") == 0
+    whole, cut = (ActionDecoderPolicy.from_pretrained(tmp_path / d / "final") for d in ("whole", "cut"))
+    for a, b in zip(whole.state_dict().values(), cut.state_dict().values()):
+        assert torch.equal(a, b)
+    logs = [json.loads((tmp_path / d / "finetune_log.json").read_text())["history"] for d in ("whole", "cut")]
+    strip = lambda hs: [{k: v for k, v in h.items() if k not in ("wall_s", "cpu_s")} for h in hs]  # noqa: E731
+    assert strip(logs[0]) == strip(logs[1]) and logs[0][-1]["updates"] == 4 * logs[0][-1]["decisions"]
+    # the decoder's weights are the BC policy's; the noise actor moved
+    bc = ActionDecoderPolicy.from_pretrained(ckpt)
+    assert all(torch.equal(bc.state_dict()[k], v) for k, v in whole.state_dict().items() if k in bc.state_dict())
+    assert whole.noise_actor.head.weight.abs().max() > 0
+    capsys.readouterr()
+    assert main(["eval", "--checkpoint", str(tmp_path / "whole" / "final"), "--episodes", "1", "--num-envs", "1"]) == 0
+    assert "success_rate=" in capsys.readouterr().out
+    # a DSRL checkpoint is not a BC checkpoint to start from
+    assert _run(tmp_path / "whole" / "final", tmp_path / "again", "--env-steps", "24") == 2
+    assert "already has a noise actor" in capsys.readouterr().err
+
+
+def test_dsrl_steers_a_ddpm_decoder_through_its_deterministic_solver():
+    policy = dsrl_policy(_bc("DDPM"), hidden=16, bound=2.5, steps=3)
+    batch = {"state": torch.randn(2, S)}
+    noise = torch.randn(2, H, D)
+    assert torch.equal(decode(policy, batch, noise), decode(policy, batch, noise))
+    assert not torch.equal(decode(policy, batch, noise), decode(policy, batch, -noise))
+
+
+def test_dsrl_refuses_bad_options_in_one_line(tmp_path, capsys):
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    for args, words in ((["--noise-bound", "0"], "--noise-bound: expected a positive number"),
+                        (["--group-size", "2"], "--group-size: only with --algo ppo"),
+                        (["--buffer-size", "2"], "--buffer-size: expected at least --sac-batch-size"),
+                        (["--target-entropy", "nan"], "--target-entropy: expected a finite number")):
+        assert _run(ckpt, tmp_path / "x", "--env-steps", "24", *args) == 2
+        assert words in capsys.readouterr().err
+
+
+def test_plugin_config_carries_the_noise_actor():
+    sys.path.insert(0, str(ROOT / "lerobot_policy_action_decoder" / "src"))
+    from lerobot_policy_action_decoder import convert
+
+    values = {name: getattr(DecoderConfig(), name) for name in convert.SHARED}
+    values.update(decoder_type="mean_flow", chunk_size=8, n_action_steps=4, num_inference_steps=None,
+                  flow_prediction=None, tasks=[], noise_actor_hidden=32, noise_actor_bound=1.5)
+    core = convert.decoder_config(SimpleNamespace(**values), state_dim=6, action_dim=2)
+    assert (core.noise_actor_hidden, core.noise_actor_bound) == (32, 1.5)
+    policy = ActionDecoderPolicy(core)
+    assert policy.noise_actor is not None and math.isclose(policy.noise_actor.bound, 1.5)
