@@ -6,12 +6,13 @@ the same 50 evaluation layouts before and after.
     python -m benchmarks.rl_finetune --tasks report --jobs 2  # the report half, FM and MF: the table
     python -m benchmarks.rl_finetune --tasks dev --seeds 0 1  # the development half, two fine-tuning seeds
     python -m benchmarks.rl_finetune --tasks metaworld/push --decoders flow_matching --cpu-minutes 10
+    python -m benchmarks.rl_finetune --tasks report --algo dsrl --seeds 0 1 --jobs 2   # noise-space RL, two seeds
 
 The task set comes from a rule, not by hand (`select`): every Meta-World task whose 3-demo
 flow-matching BC policy succeeds in 15–65 % of 50 evaluation episodes (seed 0). The tasks the
 defaults were developed on (`TUNED_ON`) belong to the development half; the others are split by a
 hash of their name (`half`), fixed before any run. Each (task, decoder) run lives in its own
-directory under --runs (suffixed `_sac` for SAC); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
+directory under --runs (suffixed `_sac` or `_dsrl`); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
 steps are skipped, an interrupted fine-tuning resumes, and a run whose row is already in --results
 (same task, decoder, algorithm, recipe and seed) is not run again, so the grid can be stopped and
 continued, on another machine too. The rows of finished runs are merged into
@@ -41,6 +42,8 @@ RUN_FIELDS = RUN_OPTIONS | {"task", "algo", "sigma", "seed"}
 """`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
 BC_DEMOS, BC_STEPS, CPU_MINUTES = 3, 2000, 45.0
 """The protocol's BC (demonstrations, training steps) and fine-tuning budget (CPU-minutes per run)."""
+ENV_STEPS = {"dsrl": 200_000}
+"""Environment steps per run where the protocol caps them (DSRL); the others stop at the CPU budget."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
 policy that succeeds often enough for its rollouts to carry a signal."""
@@ -151,9 +154,11 @@ def run_one(task: str, decoder: str, seed: int, args) -> None:
     log, bc = run / "log.txt", run / "bc"
     ft = run / ft_dir_name(args.finetune_args, seed)
     suffix = ft.name[2:]
-    # The fine-tuned policy samples with K = --sde-steps; MeanFlow's BC default is K = 1, so the
-    # BC policy is also measured at that K, the sampler and K the gain compares.
-    k = planned_config(args.finetune_args).sde_steps
+    # The fine-tuned policy samples with K = --sde-steps (DSRL: the decoder's own K, or --steps); MeanFlow's
+    # BC default is K = 1, so the BC policy is also measured at that K, the sampler and K the gain compares.
+    planned = planned_config(args.finetune_args)
+    k = (planned.steps or json.loads((run / "bc_eval.json").read_text())["steps"]) if args.algo == "dsrl" \
+        else planned.sde_steps
     if json.loads((run / "bc_eval.json").read_text())["steps"] != k:
         _eval(bc / "final", run / f"bc_eval_k{k}.json", "ode", args, log, steps=k)
     if (ft / "finetune_log.json").is_file():
@@ -164,9 +169,10 @@ def run_one(task: str, decoder: str, seed: int, args) -> None:
     if not (ft / "final" / "model.safetensors").is_file():
         resume = ["--resume"] if (ft / "checkpoints" / "last").is_file() else []
         _run([*CLI, "finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(ft), "--algo", args.algo,
-              "--env-steps", "10000000", "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
+              "--env-steps", str(ENV_STEPS.get(args.algo, 10_000_000)), "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
               "--seed", str(seed), *args.finetune_args, *resume], log)
-    _eval(ft / "final", run / f"ft_eval_sde{suffix}.json", "sde", args, log)
+    if args.algo != "dsrl":         # DSRL's policy is the noise actor's mean through the deterministic sampler
+        _eval(ft / "final", run / f"ft_eval_sde{suffix}.json", "sde", args, log)
     _eval(ft / "final", run / f"ft_eval_ode{suffix}.json", "ode", args, log)
 
 
@@ -180,10 +186,13 @@ def _gain(r: dict) -> float:
 def recipe(config: dict) -> str:
     """The `finetune` options a run set away from `FinetuneConfig`'s defaults ("k=v, …"), or
     "defaults"; options a run's config does not record had their default."""
-    from action_decoder.rl.finetune import FinetuneConfig, episodes_per_layout
+    from action_decoder.rl.finetune import ALGO_DEFAULTS, FinetuneConfig, episodes_per_layout
 
     base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
     config = dict(config)
+    for name, by_algo in ALGO_DEFAULTS.items():       # an algorithm's default, None in the config or spelt out
+        if config.get(name) == by_algo.get(config.get("algo", "ppo")):
+            config[name] = None
     # episodes per layout: None is the algorithm's default (4 with PPO), which logs may also spell out
     group = episodes_per_layout(SimpleNamespace(group_size=config.pop("group_size", None),
                                                 algo=config.get("algo", "ppo")))
@@ -244,7 +253,8 @@ def collect(runs: Path) -> list[dict]:
             ft_k = json.loads((run / f"ft_eval_ode{suffix}.json").read_text())["steps"]
             at_k = run / f"bc_eval_k{ft_k}.json"
             bc_at_k = json.loads(at_k.read_text()) if at_k.is_file() else bc
-            sde = json.loads((run / f"ft_eval_sde{suffix}.json").read_text())
+            sde_file = run / f"ft_eval_sde{suffix}.json"
+            sde = json.loads(sde_file.read_text()) if sde_file.is_file() else {"success_rate": None}
             ode = json.loads((run / f"ft_eval_ode{suffix}.json").read_text())
             log = json.loads((ft / "finetune_log.json").read_text())
             hist, last = log["history"], log["history"][-1]
@@ -266,9 +276,9 @@ def collect(runs: Path) -> list[dict]:
                          "early": early_phase(hist, log["config"].get("minibatch_size", 512))
                          if log["config"]["algo"] == "ppo" else None,
                          "measured": time.strftime("%Y-%m-%d", time.gmtime((run / f"ft_eval_ode{suffix}.json").stat().st_mtime)),
-                         # (CPU minutes, 20-episode SDE success, ODE success) at each evaluation during the run
-                         "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e["success_sde"], e["success_ode"]]
-                                   for e in log["evals"]]})
+                         # (CPU minutes, SDE success (None: DSRL), ODE success, env steps) at each evaluation
+                         "curve": [[round(cpu.get(e["iteration"], 0.0), 2), e.get("success_sde"), e["success_ode"],
+                                    e["env_steps"]] for e in log["evals"]]})
     return rows
 
 
@@ -317,18 +327,61 @@ def _num(r: dict, key: str, scale: float, fmt: str) -> str:
     return "–" if r.get(key) is None else format(scale * r[key], fmt)
 
 
+GAIN_MARK = 15.0
+"""The mean gain (points) whose first crossing in environment steps measures sample efficiency."""
+PPO_ITERATION_STEPS, PPO_EVAL_EVERY = 32 * 200, 10
+"""PPO's default iteration (32 envs × the 200-step cap; dense rewards run every episode to the cap) and the
+benchmark's `--eval-every`: rows recorded without env steps in their curve had their evaluations there."""
+
+
+def curve_steps(r: dict) -> list[tuple[int, float]]:
+    """(env steps, ODE success) at each evaluation during a run. Curves recorded before they kept env steps
+    (default-recipe PPO rows) evaluated at iterations 0, 10, 20, … and at the last one: their env steps follow."""
+    pts = []
+    for i, c in enumerate(r.get("curve") or []):
+        if len(c) > 3:
+            pts.append((int(c[3]), c[2]))
+        elif r["algo"] == "ppo" and r.get("recipe", "defaults") == "defaults":
+            last = i == len(r["curve"]) - 1
+            pts.append((r["env_steps"] if last else i * PPO_EVAL_EVERY * PPO_ITERATION_STEPS, c[2]))
+    return pts
+
+
+def steps_to_mean_gain(rows: list[dict], mark: float = GAIN_MARK) -> int | None:
+    """The fewest env steps at which the mean over `rows` of each run's latest evaluated gain (ODE success
+    during the run minus BC's at the fine-tuning's K, in points) reaches `mark`; None if it never does."""
+    curves = [curve_steps(r) for r in rows]
+    if not curves or not all(curves):
+        return None
+    for x in sorted({x for c in curves for x, _ in c}):
+        latest = [next((100 * (ok - r["bc_at_ft_k"]) for at, ok in reversed(c) if at <= x), None)
+                  for r, c in zip(rows, curves)]
+        if None not in latest and sum(latest) / len(latest) >= mark:
+            return x
+    return None
+
+
 def summary(rows: list[dict]) -> list[str]:
-    """Mean gain per (half, decoder, algo, recipe) over seed-0 rows, and the seed-to-seed spread where
-    a (task, decoder, recipe) ran with several fine-tuning seeds."""
-    lines, groups, seeds = [], {}, {}
+    """Mean gain per (half, decoder, algo, recipe) over seed-0 rows and over every seed, the runs that end
+    more than 5 points below BC, the env steps to a mean gain of +15, and the seed-to-seed spread where a
+    (task, decoder, recipe) ran with several fine-tuning seeds."""
+    lines, groups, seeds, every = [], {}, {}, {}
     for r in rows:
         how = _how(r)
         if r.get("seed", 0) == 0:
             groups.setdefault((half(r["task"]), r["decoder"], how), []).append(_gain(r))
         seeds.setdefault((r["task"], r["decoder"], how), []).append(_gain(r))
+        every.setdefault((half(r["task"]), r["decoder"], how), []).append(r)
     for (h, dec, how), gains in sorted(groups.items()):
         lines.append(f"- {h} half, {dec} ({how}): mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(gains)} task(s) (seed 0)")
+    for (h, dec, how), rs in sorted(every.items()):
+        gains = [_gain(r) for r in rs]
+        to_mark = steps_to_mean_gain(rs)
+        lines.append(f"- {h} half, {dec} ({how}), every seed: mean gain {sum(gains) / len(gains):+.1f} points over "
+                     f"{len(rs)} run(s); {sum(g < -5 for g in gains)} end more than 5 points below BC; mean gain "
+                     f"+{GAIN_MARK:g} first reached at "
+                     + (f"{to_mark} env steps" if to_mark is not None else "no evaluation of the runs"))
     spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
     for (task, dec, how), gains in spread:
         lines.append(f"- noise: {task} {dec} ({how}) gains over fine-tuning seeds: "
@@ -360,7 +413,7 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
     for r in rows:
         lines.append(f"| {half(r['task'])} | {r['task']} | {r['decoder']} | {_how(r)} | {r.get('seed', 0)} | "
                      f"{100 * r['bc']:.0f} (K={r['bc_steps']}) | {100 * r['bc_at_ft_k']:.0f} (K={r['ft_k']}) | "
-                     f"{100 * r['ft_sde']:.0f} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
+                     f"{_num(r, 'ft_sde', 100, '.0f')} | {100 * r['ft_ode']:.0f} | {_gain(r):+.0f} | "
                      f"{_num(r, 'train_success_last10', 100, '.0f')} | {_num(r, 'kl_bc_last', 1, '.1f')} | "
                      f"{r['cpu_min']:.0f} | {r['env_steps']} | {r['measured']} |")
     early, early_lines = [r for r in rows if r.get("early")], []
@@ -389,28 +442,30 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
     table.parent.mkdir(parents=True, exist_ok=True)
     notes = table.read_text().partition(NOTES)[2] if table.is_file() else ""
     table.write_text(text + f"\n{NOTES}" + (notes or "\n"))   # the hand-written part below the table stays
-    curves = [r for r in rows if r["curve"]]
-    if curves:
+    panels: dict = {}                       # (task, decoder) -> its runs: every algorithm and seed on one plot
+    for r in rows:
+        if curve_steps(r):
+            panels.setdefault((r["task"], r["decoder"]), []).append(r)
+    if panels:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        cols = min(len(curves), 4)
-        n_rows = -(-len(curves) // cols)
+        cols = min(len(panels), 4)
+        n_rows = -(-len(panels) // cols)
         fig, axes = plt.subplots(n_rows, cols, figsize=(3.6 * cols, 3.2 * n_rows), squeeze=False)
-        for ax, r in zip(axes.flat, curves):
-            cpu, sde, ode = zip(*r["curve"])
-            ax.plot(cpu, sde, marker="o", label="eval sde (20 ep.)")
-            ax.plot(cpu, ode, marker="o", label="eval ode (20 ep.)")
-            ax.axhline(r["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={r['ft_k']}), {args.episodes} ep.")
-            extra = f"\n{_changed(r)}" if _changed(r) else ""
-            ax.set(title=f"{r['task']} {r['decoder']} s{r.get('seed', 0)}{extra}", xlabel="CPU minutes", ylabel="success",
-                   ylim=(-0.02, 1.02))
+        for ax, ((task, dec), rs) in zip(axes.flat, sorted(panels.items())):
+            for r in rs:
+                steps, ode = zip(*curve_steps(r))
+                ax.plot(steps, ode, marker="o", ms=3, label=f"{_how(r)} s{r.get('seed', 0)}")
+            ax.axhline(rs[0]["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={rs[0]['ft_k']}), {args.episodes} ep.")
+            ax.set(title=f"{task} {dec}", xlabel="env steps", ylabel="success (ODE, evaluations during the run)",
+                   ylim=(-0.02, 1.02), xscale="symlog", xlim=(0, None))
             ax.grid(alpha=0.3)
-        for ax in list(axes.flat)[len(curves):]:
+            ax.legend(fontsize=5)
+        for ax in list(axes.flat)[len(panels):]:
             ax.axis("off")
-        axes[0][0].legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(plot, dpi=110)
         plt.close(fig)
@@ -425,7 +480,7 @@ def main(argv=None) -> None:
                    help="'report' or 'dev' (a half of the task set), or Meta-World task names")
     p.add_argument("--decoders", nargs="+", default=["flow_matching", "mean_flow"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0], help="fine-tuning seeds (the BC policy is shared)")
-    p.add_argument("--algo", default="ppo", choices=["ppo", "sac"])
+    p.add_argument("--algo", default="ppo", choices=["ppo", "sac", "dsrl"])
     p.add_argument("--demos", type=int, default=BC_DEMOS)
     p.add_argument("--bc-steps", type=int, default=BC_STEPS)
     p.add_argument("--cpu-minutes", type=float, default=CPU_MINUTES)

@@ -221,13 +221,13 @@ def test_rl_table_measures_the_gain_with_one_sampler_at_the_fine_tunings_k(monke
     hist = [{"iteration": 1, "env_steps": 6400, "wall_s": 60.0, "cpu_s": 55.0, "success": 0.75, "kl_bc": 2.5}]
     (run / "ft" / "finetune_log.json").write_text(json.dumps(
         {"task": "reach-v3", "config": {"algo": "ppo", "sigma": 0.25}, "history": hist,
-         "evals": [{"iteration": 1, "success_sde": 0.5, "success_ode": 0.5}]}))
+         "evals": [{"iteration": 1, "env_steps": 6400, "success_sde": 0.5, "success_ode": 0.5}]}))
     rows = rl_finetune.collect(tmp_path / "runs")
     args = argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json")
     text = rl_finetune.write_report(rows, tmp_path / "t.md", tmp_path / "t.png", args)
     # the ODE at K = 10 on both sides: 60 − 40, whatever the SDE or BC's own K gave; training success 75
     assert "| mean_flow | ppo, a = 0.25 | 0 | 30 (K=1) | 40 (K=10) | 70 | 60 | +20 | 75 | 2.5 |" in text
-    assert rows[0]["curve"] == [[0.92, 0.5, 0.5]]                   # 55 CPU-s
+    assert rows[0]["curve"] == [[0.92, 0.5, 0.5, 6400]]             # 55 CPU-s
     md = tmp_path / "t.md"
     md.write_text(md.read_text() + "What the table says.\n")
     rl_finetune.write_report(rows[:0], md, tmp_path / "t.png", args)   # rebuilt: the table changes, the notes stay
@@ -366,8 +366,11 @@ def test_rl_rows_keep_each_fine_tuning_seed_and_report_their_spread(monkeypatch,
             (run / f"{name}{suffix}.json").write_text(json.dumps({"success_rate": r, "steps": 10}))
         hist = [{"iteration": i, "env_steps": 800 * i, "wall_s": 1.0, "cpu_s": 60.0 * i, "success": i / 20, "kl_bc": 1.0}
                 for i in range(1, 13)]
+        evals = [{"iteration": 0, "env_steps": 0, "success_ode": 0.2},
+                 {"iteration": 10, "env_steps": 8000, "success_ode": 0.5 if seed == 0 else 0.3},
+                 {"iteration": 12, "env_steps": 9600, "success_ode": 0.1}][: 3 if seed else 2]
         (run / f"ft{suffix}" / "finetune_log.json").write_text(json.dumps(
-            {"task": "reach-v3", "config": {"algo": "ppo", "seed": seed}, "history": hist, "evals": []}))
+            {"task": "reach-v3", "config": {"algo": "ppo", "seed": seed}, "history": hist, "evals": evals}))
     (run / "bc_eval.json").write_text(json.dumps({"decoder_type": "flow_matching", "success_rate": 0.2, "steps": 10}))
     (run / "ft_s2").mkdir()                                  # a fine-tuning still running: no row yet
     rows = rl_finetune.collect(tmp_path / "runs")
@@ -376,8 +379,12 @@ def test_rl_rows_keep_each_fine_tuning_seed_and_report_their_spread(monkeypatch,
     merged = rl_finetune.merge(tmp_path / "r.json", rows)
     assert len(merged) == 2                                  # seeds are kept apart
     lines = rl_finetune.summary(merged)
+    # at 8000 env steps the seeds' latest gains are +30 and +10 (mean +20 ≥ +15); at 0 both are 0
     assert lines == ["- dev half, flow_matching (ppo): mean gain +20.0 points over 1 task(s) (seed 0)",
+                     "- dev half, flow_matching (ppo), every seed: mean gain +10.0 points over 2 run(s); 0 end more "
+                     "than 5 points below BC; mean gain +15 first reached at 8000 env steps",
                      "- noise: reach-v3 flow_matching (ppo) gains over fine-tuning seeds: +20, +0 (range 20 points)"]
+    assert rl_finetune.steps_to_mean_gain(merged, mark=25) is None     # +30 and −10 at 9600: never +25 together
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
