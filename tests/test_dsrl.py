@@ -39,6 +39,9 @@ def test_untrained_actor_draws_the_decoders_own_noise():
     mean, log_std = actor(torch.randn(5, S))
     assert mean.abs().max() == 0 and log_std.abs().max() < 1e-6
     assert actor.act(torch.randn(5, S)).abs().max() == 0
+    w = torch.randn(5, H, D, generator=torch.Generator().manual_seed(2))
+    drawn = actor.sample(torch.randn(5, S), generator=torch.Generator().manual_seed(2))[0]
+    assert torch.allclose(drawn, actor.bounded(w), atol=1e-6)                # the BC policy's noise, bounded
 
 
 @pytest.mark.parametrize("bound", [0.7, 2.5])
@@ -65,13 +68,17 @@ def test_policy_starts_from_the_actors_noise_and_reloads(tmp_path):
     for p in policy.noise_actor.head.parameters():
         p.data.normal_(0, 0.3)
     batch = {"state": torch.randn(3, S)}
-    noise = policy.noise_actor.act(**policy.noise_actor_inputs(batch))
-    chunk = policy.predict_action_chunk(batch)
+    gen = lambda: [torch.Generator().manual_seed(i) for i in range(3)]            # noqa: E731
+    noise = policy.noise_actor.sample(**policy.noise_actor_inputs(batch), generator=gen())[0]
+    mean, log_std = policy.noise_actor(**policy.noise_actor_inputs(batch))
+    eps = torch.stack([torch.randn(H, D, generator=g) for g in gen()])
+    assert torch.allclose(noise, policy.noise_actor.bounded(mean + log_std.exp() * eps), atol=1e-6)
+    chunk = policy.predict_action_chunk(batch, generator=gen())
     assert torch.equal(chunk, policy.predict_action_chunk(batch, noise=noise))
     assert not torch.equal(chunk, policy.predict_action_chunk(batch, noise=torch.zeros_like(noise)))
     policy.save_pretrained(tmp_path)
     again = ActionDecoderPolicy.from_pretrained(tmp_path)
-    assert torch.equal(again.predict_action_chunk(batch), chunk)
+    assert torch.equal(again.predict_action_chunk(batch, generator=gen()), chunk)
     assert json.loads((tmp_path / "config.json").read_text())["noise_actor_hidden"] == 16
     # the decoder is the BC decoder, frozen
     bc = _bc()

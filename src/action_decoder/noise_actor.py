@@ -7,8 +7,9 @@ the noise actor, a small MLP, is all that RL trains (`rl/dsrl.py`).
 
 The actor is a Gaussian over w, soft-bounded per element by b·tanh(w/b) (`bound`), which is
 close to the identity inside ±b/2. Its output layer starts at zero mean and unit std, so the
-untrained stochastic actor draws (nearly) the N(0, I) noise the decoder was trained on: it
-starts as the BC policy. Acting deterministically, it returns the bounded mean.
+untrained actor draws (nearly) the N(0, I) noise the decoder was trained on: it starts as the
+BC policy. The policy is the stochastic actor (as DSRL evaluates it); `act` gives its bounded
+mean, a deterministic alternative.
 
 It reads the normalised state and, when the policy has context tokens, their masked mean; it
 does not read a VLM cache or camera frames.
@@ -22,6 +23,8 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .flows.paths import Generators, randn_rows
 
 LOG_STD_RANGE = (-5.0, 1.0)
 """Bounds of the actor's log std (tanh-scaled into the range, SAC's convention)."""
@@ -69,11 +72,12 @@ class NoiseActor(nn.Module):
         return 2 * (math.log(2) - u - F.softplus(-2 * u))
 
     def sample(self, state: Tensor, context: Optional[Tensor] = None, context_mask: Optional[Tensor] = None,
-               generator: Optional[torch.Generator] = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+               generator: Generators = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Reparameterised draw: (noise [B, H, D] in (−b, b), log-prob per element [B] (the mean over
-        H·D of the bounded density's log), mean [B, H, D], log std [B, H, D])."""
+        H·D of the bounded density's log), mean [B, H, D], log std [B, H, D]). `generator`: one
+        torch.Generator or one per row, as for the policy's own noise."""
         mean, log_std = self(state, context, context_mask)
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        eps = randn_rows(mean.shape[0], tuple(mean.shape[1:]), generator, mean.device, mean.dtype)
         w = mean + log_std.exp() * eps
         logp = -0.5 * eps.square() - log_std - 0.5 * math.log(2 * math.pi) - self.log_det(w)
         return self.bounded(w), logp.mean((-2, -1)), mean, log_std

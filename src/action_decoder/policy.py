@@ -364,8 +364,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         its chains with the same choice (`chain_log_prob(..., meanflow_velocity=...)`).
         `generator` is one torch.Generator or a list of one per row: then row b's noise (and the
         SDE's ε) come from generator[b] alone, whatever else shares the batch. A policy with a noise
-        actor (`config.noise_actor_hidden`) starts from the actor's deterministic noise instead;
-        an explicit `noise` overrides either.
+        actor (`config.noise_actor_hidden`) draws its noise from the actor's Gaussian instead
+        (with `generator` too); an explicit `noise` overrides either.
         Log-probs (sampler "sde") are the density of the returned chain; with
         `flow_sde_logprob_sigma_only` their gradient reaches σ only (reparameterised, SAC),
         without it the chain is data and the gradient reaches the network through the means
@@ -399,7 +399,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                              "to re-score it); pass return_logprob=False")
         param = next(self.model.parameters())
         if noise is None and self.noise_actor is not None:
-            noise = self.noise_actor.act(**self.noise_actor_inputs(batch))           # [B, H, D]
+            noise = self.noise_actor.sample(**self.noise_actor_inputs(batch), generator=generator)[0]   # [B, H, D]
         elif noise is None:
             noise = randn_rows(bound.batch_size, (cfg.action_chunk_size, cfg.action_dim), generator,
                                param.device)                                        # [B, H, D]
