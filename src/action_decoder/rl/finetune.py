@@ -485,7 +485,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             return
         row = {"iteration": iteration, "env_steps": env_steps}
         for sampler in ("ode",) if dsrl else ("sde", "ode"):
-            fn = make_policy_fn(policy, num_tasks, sampler, cfg.sde_steps, torch.Generator().manual_seed(cfg.seed))
+            fn = make_policy_fn(policy, num_tasks, sampler, policy.config.num_inference_timesteps if dsrl else cfg.sde_steps,
+                                torch.Generator().manual_seed(cfg.seed))
             res = evaluate(fn, task, episodes=cfg.eval_episodes, seed=cfg.seed, n_action_steps=n_exec,
                            max_steps=MAX_EPISODE_STEPS, num_envs=min(cfg.num_envs, cfg.eval_episodes),
                            task_index=task_index)
