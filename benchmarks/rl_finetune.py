@@ -378,10 +378,12 @@ def summary(rows: list[dict]) -> list[str]:
     for (h, dec, how), rs in sorted(every.items()):
         gains = [_gain(r) for r in rs]
         to_mark = steps_to_mean_gain(rs)
+        when = f"first reached at {to_mark} env steps" if to_mark is not None else \
+            "never reached in the runs' evaluations" if all(curve_steps(r) for r in rs) else \
+            "not known (evaluations recorded without env steps)"
         lines.append(f"- {h} half, {dec} ({how}), every seed: mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(rs)} run(s); {sum(g < -5 for g in gains)} end more than 5 points below BC; mean gain "
-                     f"+{GAIN_MARK:g} first reached at "
-                     + (f"{to_mark} env steps" if to_mark is not None else "no evaluation of the runs"))
+                     f"+{GAIN_MARK:g} {when}")
     spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
     for (task, dec, how), gains in spread:
         lines.append(f"- noise: {task} {dec} ({how}) gains over fine-tuning seeds: "
@@ -458,10 +460,10 @@ def write_report(rows: list[dict], table: Path, plot: Path, args, task_set: dict
         for ax, ((task, dec), rs) in zip(axes.flat, sorted(panels.items())):
             for r in rs:
                 steps, ode = zip(*curve_steps(r))
-                ax.plot(steps, ode, marker="o", ms=3, label=f"{_how(r)} s{r.get('seed', 0)}")
+                ax.plot([x / 1000 for x in steps], ode, marker="o", ms=3, label=f"{_how(r)} s{r.get('seed', 0)}")
             ax.axhline(rs[0]["bc_at_ft_k"], color="gray", ls="--", label=f"BC (K={rs[0]['ft_k']}), {args.episodes} ep.")
-            ax.set(title=f"{task} {dec}", xlabel="env steps", ylabel="success (ODE, evaluations during the run)",
-                   ylim=(-0.02, 1.02), xscale="symlog", xlim=(0, None))
+            ax.set(title=f"{task} {dec}", xlabel="thousands of env steps", ylabel="success (evaluations during the run)",
+                   ylim=(-0.02, 1.02), xlim=(0, None))
             ax.grid(alpha=0.3)
             ax.legend(fontsize=5)
         for ax in list(axes.flat)[len(panels):]:
