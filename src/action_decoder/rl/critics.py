@@ -10,9 +10,10 @@ import torch
 from torch import Tensor, nn
 
 
-def _mlp(inp: int, hidden: int, out: int) -> nn.Sequential:
+def _mlp(inp: int, hidden: int, out: int, norm_every_layer: bool = False) -> nn.Sequential:
+    second = [nn.LayerNorm(hidden)] if norm_every_layer else []
     return nn.Sequential(nn.Linear(inp, hidden), nn.LayerNorm(hidden), nn.SiLU(),
-                         nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, out))
+                         nn.Linear(hidden, hidden), *second, nn.SiLU(), nn.Linear(hidden, out))
 
 
 class ValueNet(nn.Module):
@@ -27,12 +28,14 @@ class ValueNet(nn.Module):
 
 
 class TwinQ(nn.Module):
-    """Two independent Q(state, progress, executed actions [B, n, D]) -> ([B], [B])."""
+    """Two independent Q(state, progress, executed actions [B, n, D] or noise [B, H, D]) -> ([B], [B]).
+    `norm_every_layer`: LayerNorm after each hidden layer (not only the first), which keeps Q from
+    drifting past the returns under many updates per sample (DSRL)."""
 
-    def __init__(self, state_dim: int, action_numel: int, hidden: int = 256):
+    def __init__(self, state_dim: int, action_numel: int, hidden: int = 256, norm_every_layer: bool = False):
         super().__init__()
-        self.q1 = _mlp(state_dim + 1 + action_numel, hidden, 1)
-        self.q2 = _mlp(state_dim + 1 + action_numel, hidden, 1)
+        self.q1 = _mlp(state_dim + 1 + action_numel, hidden, 1, norm_every_layer)
+        self.q2 = _mlp(state_dim + 1 + action_numel, hidden, 1, norm_every_layer)
 
     def forward(self, state: Tensor, progress: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         x = torch.cat([state, progress[:, None], actions.flatten(1)], -1)

@@ -113,7 +113,8 @@ class FinetuneConfig:
     credited step from the rollout policy (approximate KL; target 0.05) on Meta-World; N = 20 takes
     that to 0.002–0.003 but gained no more on door-lock (docs/benchmarks/rl_finetune_screen.md)."""
     sigma_lr: float = 3e-3
-    critic_lr: float = 1e-3
+    critic_lr: Optional[float] = None
+    """Learning rate of the value head or the twin Q (default 1e-3; 3e-4 with DSRL)."""
     gamma: float = 0.99
     """Discount per decision (one chunk)."""
     gae_lambda: float = 0.95
@@ -161,7 +162,7 @@ class FinetuneConfig:
     tau: float = 0.005
     sac_batch_size: int = 128
     sac_updates_per_decision: Optional[float] = None
-    """SAC and DSRL: gradient steps per stored decision (default 0.5 with SAC, 4 with DSRL)."""
+    """SAC and DSRL: gradient steps per stored decision (default 0.5 with SAC, 2 with DSRL)."""
     steps: Optional[int] = None
     """DSRL: the frozen decoder's sampling steps (default: the checkpoint's num_inference_timesteps)."""
     noise_critic: Literal["noise", "action"] = "noise"
@@ -187,7 +188,8 @@ class FinetuneConfig:
 
 
 ALGO_DEFAULTS = {"num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
-                 "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 4.0}}
+                 "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 2.0},
+                 "critic_lr": {"ppo": 1e-3, "sac": 1e-3, "dsrl": 3e-4}}
 """The values an option left at None takes, per algorithm."""
 DSRL_TARGET_ENTROPY = 0.0
 """DSRL's default entropy per noise element (a Gaussian of std ≈ 0.24)."""
@@ -416,14 +418,15 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     groups += [{"params": sigma_params, "lr": cfg.sigma_lr}] if sigma_params else []
     buffer, critics = None, {}
     if dsrl:
-        critic = TwinQ(state_dim, policy.config.action_chunk_size * policy.config.action_dim)    # Q(s, w)
+        critic = TwinQ(state_dim, policy.config.action_chunk_size * policy.config.action_dim,     # Q(s, w)
+                       norm_every_layer=True)
         critics = {"q": critic, "q_target": make_target(critic)}
         temperature = Temperature(cfg.alpha, DSRL_TARGET_ENTROPY if cfg.target_entropy is None else cfg.target_entropy)
         optimizers = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=cfg.noise_lr),
                       "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
         if cfg.noise_critic == "action":
-            q_action = TwinQ(state_dim, n_exec * policy.config.action_dim)                        # Q_A(s, a)
+            q_action = TwinQ(state_dim, n_exec * policy.config.action_dim, norm_every_layer=True)  # Q_A(s, a)
             critics.update(q_action=q_action, q_action_target=make_target(q_action))
             optimizers["q_action"] = torch.optim.Adam(q_action.parameters(), lr=cfg.critic_lr)
         buffer = ReplayBuffer(cfg.buffer_size)
