@@ -432,3 +432,24 @@ def test_editing_the_returned_actions_in_place_leaves_the_chain_and_its_log_prob
     assert torch.equal(res.chain, chain)
     again = chain_log_prob(velocity, res.chain, 0.5, grid=res.grid)
     torch.testing.assert_close(again, res.step_log_probs)
+
+
+def test_squashed_eps_log_prob_keeps_its_gradient_on_sigma_only():
+    """squash=True with the ε form: the tanh log-det enters log_prob's value, not its gradient, so the
+    network gets none and σ's log-scale gets exactly −B·K·H·D (the ε form's −Σ ∂log std_k)."""
+    net, velocity = _net_velocity()
+    sigma = LearnableSigma(ExploringSigma(0.7), init=0.3)
+    params = list(net.parameters()) + [sigma.log_scale]
+    noise = torch.randn(16, 4, 2, generator=torch.Generator().manual_seed(1)) * 2
+    kw = dict(return_logprob=True, squash=True, generator=torch.Generator().manual_seed(0))
+    eps = sample_sde(velocity, noise, 5, sigma, logprob="eps", **kw)
+    full = sample_sde(velocity, noise, 5, sigma, logprob="full", generator=torch.Generator().manual_seed(0),
+                      return_logprob=True, squash=True)
+    assert torch.allclose(eps.log_prob, full.log_prob)                      # the same value
+    g = torch.autograd.grad(eps.log_prob.sum(), params, allow_unused=True)
+    assert all(x is None or torch.all(x == 0) for x in g[:-1])
+    assert torch.allclose(g[-1], torch.tensor(-16.0 * 5 * 4 * 2))
+    # the log-det field itself is the pathwise one (the actions reach the network)
+    grad_det = torch.autograd.grad(eps.squash_log_det.sum(), net[0].weight)[0]
+    assert grad_det.abs().sum() > 0
+

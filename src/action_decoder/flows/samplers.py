@@ -183,7 +183,10 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     reduce="sum" sums over H×D (the density of the chunk); "mean" averages (Flow-GRPO's
     choice: a ratio of such means is the true ratio to the power 1/(H·D)); "none" keeps
     [.., H, D]. squash=True applies tanh once after the last step and subtracts
-    log|d tanh/dx| from `log_prob` (not from `step_log_probs`).
+    log|d tanh/dx| from `log_prob` (not from `step_log_probs`). In the "eps" form that correction
+    enters `log_prob`'s value but not its gradient, so the gradient stays on σ only (through the
+    chain the log-det would pull the velocity network toward the origin; SAC's `actor_sample`
+    treats its box squash the same way); `squash_log_det` itself keeps its pathwise gradient.
     """
     _check_logprob_args(logprob, reduce, clip_t)
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
@@ -221,8 +224,9 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
             z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
         result.step_log_probs = _gaussian_log_prob(z, stds, reduce)
         result.log_prob = result.step_log_probs.sum(1)
-        if squash:
-            result.log_prob = result.log_prob - result.squash_log_det
+        if squash:              # the ε form: the log-det's value, not its gradient (σ only)
+            log_det = result.squash_log_det.detach() if logprob == "eps" else result.squash_log_det
+            result.log_prob = result.log_prob - log_det
     result.actions = result.actions.to(noise.dtype)
     return result
 
