@@ -453,3 +453,12 @@ def test_squashed_eps_log_prob_keeps_its_gradient_on_sigma_only():
     grad_det = torch.autograd.grad(eps.squash_log_det.sum(), net[0].weight)[0]
     assert grad_det.abs().sum() > 0
 
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nonfinite_sigma_without_log_probs_is_refused_in_one_line(bad):
+    f = lambda x, t: -x   # noqa: E731
+    with pytest.raises(ValueError, match=rf"^sigma: expected σ\(t\) finite on every step, got σ\(0\) = {bad}"):
+        sample_sde(f, torch.randn(2, 3, 1), 5, bad)
+    late = lambda t: torch.where(t > 0.6, torch.full_like(t, bad), torch.full_like(t, 0.5))   # noqa: E731
+    with pytest.raises(ValueError, match=r"σ\(0.8\)"):
+        sample_sde(f, torch.randn(2, 3, 1), 5, late)

@@ -122,19 +122,21 @@ def _step_coefficients(sigma, grid: Tensor, clip_t: float):
     return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt()             # a, b, std: each [K]
 
 
-def _check_density_std(std: Tensor, grid: Tensor) -> None:
-    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step.
+def _check_density_std(std: Tensor, grid: Tensor, density: bool = True) -> None:
+    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step
+    (`density=False`, sampling without log-probs: finite, as NaN or inf makes NaN actions).
 
     std_k = σ(t_k)·√Δt_k with Δt_k > 0, so std [K] is checked. One host sync per call, made
     after the loop's work is queued, so that on a GPU it waits only for results the caller
     reads anyway.
     """
-    bad = ~(torch.isfinite(std) & (std > 0))                             # [K]
+    bad = ~(torch.isfinite(std) & (std > 0)) if density else ~torch.isfinite(std)       # [K]
     if bool(bad.any()):
         k = int(bad.nonzero()[0])
         sig = float(std[k]) / float(grid[k + 1] - grid[k]) ** 0.5
-        raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
-                         f"got σ({float(grid[k]):.6g}) = {sig:.6g} (step {k} of {len(std)})")
+        expected = "> 0 and finite on every step to compute log-probs" if density else "finite on every step"
+        raise ValueError(f"sigma: expected σ(t) {expected}, got σ({float(grid[k]):.6g}) = {sig:.6g} "
+                         f"(step {k} of {len(std)})")
 
 
 def _gaussian_log_prob(z: Tensor, std: Tensor, reduce: str) -> Tensor:
@@ -170,7 +172,8 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     With `return_logprob`, `step_log_probs[:, k]` is log N(x_{k+1}; mean_k, std_k² I) of the
     returned chain, computed from the chain itself: `chain_log_prob` with the same velocity,
     σ and grid gives the same values (PPO ratio 1). σ must then be positive and finite on
-    every step (ValueError, checked once per call). `logprob` picks only where the gradient goes:
+    every step (ValueError, checked once per call); without log-probs σ must be finite (σ = 0 is
+    the ODE). `logprob` picks only where the gradient goes:
       "full" — the chain is data (score-function / PPO form): each step's network call sees
                the detached state x_k, so gradients reach the velocity's parameters through
                the means and σ through the stds, exactly as for `chain_log_prob` of the
@@ -217,8 +220,8 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
         log_det = 2 * (math.log(2) - y - F.softplus(-2 * y))
         result.squash_log_det = log_det if reduce == "none" else (
             log_det.sum((-2, -1)) if reduce == "sum" else log_det.mean((-2, -1)))
+    _check_density_std(std, grid, density=return_logprob)
     if return_logprob:
-        _check_density_std(std, grid)
         z = (chain[:, 1:].detach() - means_t) / stds.reshape(B, K, 1, 1)     # [B, K, H, D]
         if logprob == "eps":
             z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
