@@ -462,3 +462,19 @@ def test_nonfinite_sigma_without_log_probs_is_refused_in_one_line(bad):
     late = lambda t: torch.where(t > 0.6, torch.full_like(t, bad), torch.full_like(t, 0.5))   # noqa: E731
     with pytest.raises(ValueError, match=r"σ\(0.8\)"):
         sample_sde(f, torch.randn(2, 3, 1), 5, late)
+
+
+@pytest.mark.parametrize("name", ["churn", "explore", "fixed"])
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_gaussian_target_std_is_what_sampling_gives(name, steps):
+    """The closed-form std of `sample_sde` on N(0, 0.4²) with its exact velocity, against sampling:
+    explore at σ(0) = 0.7 gives 0.742 at K = 1 and 0.507 at K = 2."""
+    from action_decoder.flows.samplers import gaussian_target_std
+
+    sigma = {"churn": ChurnSigma(0.7), "explore": ExploringSigma(0.7), "fixed": FixedSigma(0.7)}[name]
+    oracle = Gaussian(torch.zeros(8, 3, dtype=torch.float64), 0.4)
+    noise = torch.randn(4000, 8, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    out = sample_sde(oracle.velocity, noise, steps, sigma, generator=torch.Generator().manual_seed(1)).actions
+    assert float(out.std()) == pytest.approx(gaussian_target_std(sigma, steps), rel=0.02)
+    if name == "explore" and steps < 3:
+        assert round(gaussian_target_std(sigma, steps), 3) == {1: 0.742, 2: 0.507}[steps]

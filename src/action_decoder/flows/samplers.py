@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .paths import (AvgVelocity, Generators, Velocity, check_chunk, checked_call, compute_dtype, randn_rows,
-                    resolve_steps)
+from .paths import (AvgVelocity, Generators, Velocity, check_chunk, check_steps, checked_call, compute_dtype,
+                    randn_rows, resolve_steps)
 from .sigma import ChurnSigma, FixedSigma
 
 LOGPROB_FORMS = ("full", "eps")
@@ -232,6 +232,28 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
             result.log_prob = result.log_prob - log_det
     result.actions = result.actions.to(noise.dtype)
     return result
+
+
+def gaussian_target_std(sigma, steps: int, target_std: float = 0.4, clip_t: float = 1e-2,
+                        device: Optional[torch.device] = None) -> float:
+    """The std per element of `sample_sde`'s output on the uniform grid of `steps` steps when the
+    data is N(0, target_std²) and the velocity is that data's exact one, v(x, t) = g(t)·x with
+    g = (t·s² − (1 − t)) / ((1 − t)² + t²·s²), s = `target_std` (`oracles.Gaussian`).
+
+    Each step is then affine in x, so the variance follows var_{k+1} = (a_k + b_k·g(t_k))²·var_k + std_k²
+    from var_0 = 1 (closed form, float64). Enough steps return `target_std`; few leave part of the
+    noise the steps inject. `device`: where σ's parameters live."""
+    check_steps(steps)
+    sigma = _as_sigma(sigma)
+    grid = torch.linspace(0, 1, steps + 1, dtype=torch.float64, device=device)
+    with torch.no_grad():
+        a, b, std = _step_coefficients(sigma, grid, clip_t)
+    s2 = float(target_std) ** 2
+    var = 1.0
+    for t, a_k, b_k, std_k in zip(grid[:-1].tolist(), a.tolist(), b.tolist(), std.tolist()):
+        g = (t * s2 - (1 - t)) / ((1 - t) ** 2 + t * t * s2)
+        var = (a_k + b_k * g) ** 2 * var + std_k ** 2
+    return math.sqrt(var)
 
 
 def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tensor] = None,
