@@ -232,9 +232,9 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
 
 
 def test_shaping_is_potential_based_and_telescopes():
-    """On a real rollout, the discounted shaping of each episode sums to 0 when it ends in success
-    and to γ^n·Φ(s_n) at a time limit (Φ(s₀) = 0, independent of the first action): it cannot
-    change which policy is best."""
+    """On a real rollout, the discounted shaping of each episode sums to 0, whether it ends in success
+    or at the training cap, where the critics bootstrap nothing (Φ(s₀) = 0, independent of the first
+    action, and Φ = 0 at the cap): it cannot change which policy is best."""
     envs = [make_env("reach-v3") for _ in range(2)]
     gen = torch.Generator().manual_seed(0)
 
@@ -248,9 +248,31 @@ def test_shaping_is_potential_based_and_telescopes():
     for start, end in zip([0] + [e + 1 for e in ends[:-1]], ends):
         n = end - start + 1
         total = sum(gamma ** i * float(f[start + i]) for i in range(n))
-        tail = 0.0 if ro.terminal[end] else gamma ** n * float(ro.reward_after[end]) / 10
         assert float(ro.reward_before[start]) == 0.0
-        assert total == pytest.approx(tail, abs=1e-5)
+        assert total == pytest.approx(0.0, abs=1e-5)
+
+
+def test_shaped_return_equals_the_unshaped_one_at_the_cap_in_closed_form():
+    """Two hand-made episodes of three decisions (env rewards 10·Φ), one ending at the training cap
+    and one in success: the shaping per decision is γΦ₁ − 0, γΦ₂ − Φ₁, γ·0 − Φ₂ in both, and the
+    discounted shaped return equals the success reward's, whatever Φ the episode ends near. An
+    episode cut before the cap (an env's own limit) keeps γΦ₃, which the critic's bootstrap balances."""
+    from action_decoder.rl.finetune import decision_rewards
+
+    phi = [0.3, 0.7, 0.95]
+    ro = SimpleNamespace(reward_before=torch.tensor([0.0, 3.0, 7.0] * 3), reward_after=torch.tensor([3.0, 7.0, 9.5] * 3),
+                         terminal=torch.tensor([False, False, False, False, False, True, False, False, False]),
+                         next_progress=torch.tensor([0.3, 0.6, 1.0, 0.3, 0.6, 0.9, 0.3, 0.6, 0.9]))
+    gamma = 0.9
+    expected = torch.tensor([gamma * phi[0], gamma * phi[1] - phi[0], -phi[1]] * 2
+                            + [gamma * phi[0], gamma * phi[1] - phi[0], gamma * phi[2] - phi[1]])
+    assert torch.allclose(shaping(ro, gamma), expected)
+    cfg = SimpleNamespace(reward="success", success_reward=1.0, shaping_scale=0.5, gamma=gamma)
+    r = decision_rewards(ro, cfg, n_exec=4)
+    ret = [sum(gamma ** i * float(r[3 * e + i]) for i in range(3)) for e in range(3)]
+    assert ret[0] == pytest.approx(0.0, abs=1e-6)                        # capped: no k·γ³·Φ(s₃) left
+    assert ret[1] == pytest.approx(gamma ** 2 * 1.0, abs=1e-6)           # success: the success reward alone
+    assert ret[2] == pytest.approx(0.5 * gamma ** 3 * phi[2], abs=1e-6)  # cut early: the bootstrap's share
 
 
 def test_group_advantages_compare_episodes_of_one_layout():

@@ -122,9 +122,9 @@ class FinetuneConfig:
     """`--reward success`: reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
     """`--reward success`: weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
-    Φ = 0 after success. It guides credit assignment without changing the optimal policy (0: success
-    only). Keep k well below `success_reward`: a truncated episode that hovers at the goal earns
-    ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
+    Φ = 0 at the start, after success and at the training cap (`shaping`): over an episode it sums to 0,
+    so it guides credit assignment without changing the optimal policy (0: success only). Keep k
+    below `success_reward`: each decision's shaping is up to k, which the critic must average out."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
     trained_steps: int = 10
@@ -295,10 +295,14 @@ def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
 
 def shaping(ro, gamma: float) -> torch.Tensor:
     """γ·Φ(s′) − Φ(s) per decision [N], Φ = env reward / 10 (Meta-World's rewards lie in [0, 10]),
-    Φ(terminal) = 0 and Φ(s₀) = 0 (the env's reward at s₀ comes only with an action, which would make
-    the first term depend on it). Summed over an episode it telescopes to the bootstrapped tail at a
-    time limit, so the policy it favours is the one the success reward favours."""
-    phi_next = torch.where(ro.terminal, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
+    Φ(s₀) = 0 (the env's reward at s₀ comes only with an action, which would make the first term
+    depend on it) and Φ(s′) = 0 wherever the critics bootstrap nothing (`episode_ends`: success, and
+    the training cap, which ends the MDP of heads that see the episode's progress). Summed over an
+    episode that ends there, it telescopes to 0, so the shaped return is the unshaped one and the
+    policy it favours is the one the success reward favours (an episode that hovers near the goal
+    until the cap keeps no k·γⁿ·Φ(sₙ)). An episode cut before the cap without success (an env's own
+    limit) keeps Φ(s′), which the critics' bootstrap there balances."""
+    phi_next = torch.where(episode_ends(ro), torch.zeros_like(ro.reward_after), ro.reward_after / 10)
     return gamma * phi_next - ro.reward_before / 10
 
 
