@@ -656,9 +656,9 @@ def test_adaptive_rate_comes_down_when_the_kl_stop_ends_an_iteration():
     real = ppo.k3_kl
     calls = []
 
-    def kl_after_the_first(x):                      # 1.8 × target from the second minibatch on
+    def kl_after_the_first(x, numel=1.0):           # 1.8 × target from the second minibatch on
         calls.append(1)
-        return real(x) if len(calls) == 1 else torch.full_like(real(x), 0.09)
+        return real(x, numel) if len(calls) == 1 else torch.full_like(real(x), 0.09)
 
     ppo.k3_kl = kl_after_the_first
     try:
@@ -726,3 +726,41 @@ def test_finetune_resume_refuses_another_bc_checkpoint(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--checkpoint: " in err[0] and "other BC weights" in err[0], err
     assert main([*args, "--checkpoint", str(ckpt), "--env-steps", "48", "--resume"]) == 0
+
+
+def test_mean_reduced_log_probs_give_kl_per_element_from_the_summed_ratio():
+    """With `--logprob-reduce mean` the KLs are the chunk's KL / (H·D): in closed form for Gaussians
+    (N(μ, 1) against N(0, 1) on n elements: KL = n·μ²/2), and through `ppo_update`, whose approx_kl,
+    kl_bc_update and penalty gradient with averaged log-probs are the summed ones / n."""
+    n, mu = 16, 0.5
+    x = mu + torch.randn(200_000, n, generator=torch.Generator().manual_seed(0))
+    log_ratio_ref = (Normal(0.0, 1.0).log_prob(x) - Normal(mu, 1.0).log_prob(x))          # [S, n]
+    per_element = float(ppo.k3_kl(log_ratio_ref.mean(-1, keepdim=True), n).mean())
+    assert per_element == pytest.approx(mu ** 2 / 2, rel=0.03)
+    assert float(ppo.k3_kl(log_ratio_ref.mean(-1)).mean()) < 0.25 * mu ** 2 / 2         # k3 of the mean: not it
+    lp = torch.tensor([[0.3]], requires_grad=True)
+    g = torch.autograd.grad(ppo.kl_penalty(lp, torch.zeros(1, 1), n).sum(), lp)[0]
+    assert float(g) == pytest.approx(n * 0.3)          # ∇ of ½(n·Δ)²/n: the summed one's gradient / n per unit sum
+
+    base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    batch = _batch(12)
+    with torch.no_grad():
+        full = base.chain_log_prob(batch, _ppo_data(base)["chain"], _ppo_data(base)["grid"], reduce="none")
+    data = _ppo_data(base)
+    shift = torch.linspace(-0.4, 0.6, 12)[:, None].expand(12, 5)                         # per-chain log-ratios
+    stats, grads = {}, {}
+    for reduce in ("sum", "mean"):
+        numel = 1.0 if reduce == "sum" else H * D
+        lp = full.sum((-2, -1)) / numel                                                   # [12, 5]
+        d = {**data, "logp_old": lp + shift / numel, "logp_ref": lp - 2 * shift / numel, "adv": torch.zeros(12)}
+        policy = copy.deepcopy(base)
+        cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce=reduce,
+                              ratio_tol=float("inf"), clip_eps=0.2, kl_coef=1.0, target_kl=100.0, vf_coef=0.5,
+                              grad_clip=1e9, lr_schedule="fixed", lr_warmup_updates=0)
+        opt = torch.optim.SGD(policy.model.parameters(), lr=0.0)
+        stats[reduce] = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, d, cfg,
+                                   torch.Generator().manual_seed(0))
+        grads[reduce] = torch.cat([p.grad.flatten() for p in policy.model.parameters() if p.grad is not None])
+    for key in ("approx_kl", "kl_bc_update"):
+        assert stats["mean"][key] == pytest.approx(stats["sum"][key] / (H * D), rel=1e-4), key
+    assert torch.allclose(grads["mean"], grads["sum"] / (H * D), rtol=1e-3, atol=1e-7)

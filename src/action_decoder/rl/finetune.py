@@ -31,7 +31,7 @@ from .critics import TwinQ, ValueNet
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, Temperature, make_target, sac_update
-from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
+from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box, step_numel
 
 TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN = 500_000, 400_000
 """Training layouts: seeds in [500 000, 900 000), apart from demonstrations (low seeds) and
@@ -126,7 +126,7 @@ class FinetuneConfig:
     so it guides credit assignment without changing the optimal policy (0: success only). Keep k
     below `success_reward`: each decision's shaping is up to k, which the critic must average out."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
-    """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
+    """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO; the KLs are then per element)."""
     trained_steps: int = 10
     """The last N denoising steps enter the PPO/KL objective. Their noise is what moves the executed
     actions: on a 3-demo reach policy the last 5 of 10 steps carry 97 % of the executed-action
@@ -456,7 +456,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                                   for i in range(0, len(rewards), 512)])
         # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
         # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
-        kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
+        numel = step_numel(rec["chain"].shape, executed) if cfg.logprob_reduce == "mean" else 1.0   # per element
+        kl_rollout = float(k3_kl(logp_ref - rec["logp"], numel)[:, credited].mean())
         norm = policy.normalizers["state"].normalize
         if cfg.algo == "ppo":
             with torch.no_grad():

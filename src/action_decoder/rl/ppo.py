@@ -14,7 +14,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .sde_policy import rescore_chain
+from .sde_policy import rescore_chain, step_numel
 
 
 def gae(rewards: Tensor, values: Tensor, next_values: Tensor, terminal: Tensor, last: Tensor,
@@ -72,16 +72,23 @@ def group_advantages(rewards: Tensor, last: Tensor, gamma: float, group_size: in
     return (groups - others).view(n_episodes, horizon)[episode, position]
 
 
-def k3_kl(log_ratio_ref: Tensor) -> Tensor:
-    """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ."""
-    return torch.expm1(log_ratio_ref) - log_ratio_ref
+def k3_kl(log_ratio_ref: Tensor, numel: float | Tensor = 1.0) -> Tensor:
+    """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ.
+
+    `numel`: for log-probs averaged over the chunk (`--logprob-reduce mean`), the elements each one
+    averages (`sde_policy.step_numel`); the estimate is then that of the summed (true) log-ratio
+    divided by them, KL per element. k3 of the averaged log-ratio itself is not KL / (H·D)."""
+    x = log_ratio_ref * numel
+    return (torch.expm1(x) - x) / numel
 
 
-def kl_penalty(logp: Tensor, logp_ref: Tensor) -> Tensor:
+def kl_penalty(logp: Tensor, logp_ref: Tensor, numel: float | Tensor = 1.0) -> Tensor:
     """Per-sample loss whose gradient, on samples of π_θ, is ∇ KL(π_θ ‖ π_ref): k2 = ½ (log π_θ − log π_ref)².
     (Back-propagating `k3_kl` instead gives ∇ KL(π_ref ‖ π_θ), the reverse direction; its value, not its
-    gradient, is the estimate of KL(π_θ ‖ π_ref) that is logged.)"""
-    return 0.5 * (logp - logp_ref).square()
+    gradient, is the estimate of KL(π_θ ‖ π_ref) that is logged.) `numel` as in `k3_kl`: k2 of the
+    summed log-ratio divided by the elements, so the gradient is that of KL per element (k2 of the
+    averaged log-ratio would shrink it by numel² instead of numel)."""
+    return 0.5 * ((logp - logp_ref) * numel).square() / numel
 
 
 def trained_slice(steps: int, trained_steps: int) -> slice:
@@ -164,11 +171,15 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             if update_policy:
                 parts = {"pg": 0.0, "kl": 0.0}
                 log_ratios = []
+                numels = []
                 for sub in idx.split(micro):
                     w = len(sub) / len(idx)                   # micro-batch share of the minibatch mean
                     executed = data["executed"][sub] if "executed" in data else policy.config.n_action_steps
                     lp = rescore_chain(policy, make_batch(data["states"][sub]), chain[sub], grid,
                                        cfg.logprob_reduce, executed)                                 # [b, K']
+                    # KLs per element with averaged log-probs: from the summed log-ratio (`k3_kl`)
+                    numel = (step_numel(chain[sub].shape, executed).expand_as(lp)
+                             if cfg.logprob_reduce == "mean" else torch.ones_like(lp))               # [b, K']
                     log_ratio = lp - data["logp_old"][sub, trained]
                     ratio = log_ratio.exp()
                     a = adv[sub, None]
@@ -176,11 +187,12 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                     loss = pg
                     if cfg.kl_coef > 0:
                         ref = data["logp_ref"][sub, trained]
-                        loss = loss + cfg.kl_coef * kl_penalty(lp, ref).mean()
-                        parts["kl"] += w * float(k3_kl(ref - lp.detach()).mean())
+                        loss = loss + cfg.kl_coef * kl_penalty(lp, ref, numel).mean()
+                        parts["kl"] += w * float(k3_kl(ref - lp.detach(), numel).mean())
                     (w * loss).backward()
                     parts["pg"] += w * float(pg.detach())
                     log_ratios.append(log_ratio.detach())
+                    numels.append(numel)
                 log_ratio = torch.cat(log_ratios)                                                    # [b, K']
                 ratio = log_ratio.exp()
                 if first:
@@ -190,7 +202,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                         raise RuntimeError(f"PPO: on-policy ratio is not 1 before the first update (max |ratio − 1| "
                                            f"= {dev:.2e} > {cfg.ratio_tol:g}): the stored chain is re-scored with a "
                                            f"different velocity, σ or grid than the one that sampled it")
-                approx_kl = float(k3_kl(log_ratio).mean())
+                approx_kl = float(k3_kl(log_ratio, torch.cat(numels)).mean())
                 logs["pg_loss"].append(parts["pg"])
                 if cfg.kl_coef > 0:
                     logs["kl_bc_update"].append(parts["kl"])
