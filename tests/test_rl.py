@@ -764,3 +764,41 @@ def test_mean_reduced_log_probs_give_kl_per_element_from_the_summed_ratio():
     for key in ("approx_kl", "kl_bc_update"):
         assert stats["mean"][key] == pytest.approx(stats["sum"][key] / (H * D), rel=1e-4), key
     assert torch.allclose(grads["mean"], grads["sum"] / (H * D), rtol=1e-3, atol=1e-7)
+
+
+@pytest.mark.parametrize("schedule", ["explore", "fixed"])
+def test_on_policy_check_passes_chains_sampled_in_small_batches_and_rescored_in_micro_batches(schedule):
+    """The rollout samples on the envs still running (1–3 rows), PPO re-scores in micro-batches of 25:
+    float32 rounds the network's products differently, by more than --ratio-tol at a small σ. The
+    check allows that rounding (`ppo.rescore_rounding`) and still catches a re-scoring with another σ."""
+    torch.manual_seed(0)
+    cfg_d = DecoderConfig(decoder_type="flow_matching", state_dim=S, action_dim=D, action_chunk_size=8,
+                          n_action_steps=4, hidden_size=32, num_hidden_layers=2, num_attention_heads=2,
+                          num_key_value_heads=1, extra={"tasks": ["reach-v3"]})
+    bc = ActionDecoderPolicy(cfg_d, _stats(torch.Generator().manual_seed(0)))
+    with torch.no_grad():
+        for p in bc.model.parameters():
+            p.mul_(2.0 if p.dim() == 2 else 1.0)          # larger velocities, as trained networks have
+    policy = finetune_policy(bc, sigma=0.003, learn_sigma=True, steps=10, schedule=schedule)
+    states = torch.randn(45, S, generator=torch.Generator().manual_seed(1))
+    gen, parts, i = torch.Generator().manual_seed(0), [], 0
+    with torch.no_grad():
+        while i < len(states):
+            b = 1 + i % 3
+            parts.append(sample_chain(policy, {"state": states[i:i + b]}, 10, gen, executed=4))
+            i += b
+    data = {"states": states, "state_norm": states, "progress": torch.zeros(45),
+            "chain": torch.cat([r.chain for r in parts]), "grid": parts[0].grid,
+            "logp_old": torch.cat([r.step_log_probs for r in parts]), "adv": torch.randn(45, generator=gen),
+            "ret": torch.zeros(45)}
+    data["logp_ref"] = data["logp_old"]
+    cfg = SimpleNamespace(trained_steps=10, ppo_epochs=1, minibatch_size=45, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.0, target_kl=1e9, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed",
+                          lr_warmup_updates=0)
+    opt = torch.optim.SGD(policy.model.parameters(), lr=0.0)
+    stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+    assert stats["ratio_dev_before_update"] > cfg.ratio_tol           # rounding alone exceeds --ratio-tol here
+    with torch.no_grad():
+        policy.sigma.log_scale.fill_(0.05)                              # σ re-scored 5 % off
+    with pytest.raises(RuntimeError, match="ratio is not 1"):
+        ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))

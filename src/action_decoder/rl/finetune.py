@@ -145,7 +145,7 @@ class FinetuneConfig:
     Group advantages do not use the value head, so with `--group-size` above 1 the policy updates
     from the first iteration and this option is refused."""
     ratio_tol: float = 1e-4
-    """PPO: tolerated |ratio − 1| before the first update of an iteration."""
+    """PPO: tolerated |ratio − 1| before the first update of an iteration, on top of float rounding (`ppo.rescore_rounding`)."""
     alpha: float = 0.01
     """SAC: initial entropy weight α (log-probs per action dimension)."""
     alpha_lr: float = 3e-2
