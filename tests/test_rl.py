@@ -802,3 +802,118 @@ def test_on_policy_check_passes_chains_sampled_in_small_batches_and_rescored_in_
         policy.sigma.log_scale.fill_(0.05)                              # σ re-scored 5 % off
     with pytest.raises(RuntimeError, match="ratio is not 1"):
         ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+
+
+def _tiny_finetune_args(ckpt, out, *more):
+    return ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--num-envs", "2",
+            "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "0", *more]
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_cpu_budget_holds_within_one_update(tmp_path, monkeypatch, algo):
+    """Each update costs 100 s of (simulated) CPU: with a budget of 250 s the run stops after the update
+    that spends it (the third), inside the first iteration, not after that iteration's 12 updates; the
+    iteration logs the updates it took and is checkpointed, and final/ is written."""
+    import importlib
+    import time
+
+    F = importlib.import_module("action_decoder.rl.finetune")              # the module, not the function
+    clock, real = {"extra": 0.0}, time.process_time
+    monkeypatch.setattr(time, "process_time", lambda: real() + clock["extra"])
+
+    def costly(fn):
+        def update(*a, **k):
+            clock["extra"] += 100.0
+            return fn(*a, **k)
+        return update
+
+    if algo == "sac":                      # 2 envs × 3 decisions × 2 updates per decision = 12 SAC updates
+        monkeypatch.setattr(F, "sac_update", costly(F.sac_update))
+        more = ["--sac-batch-size", "4", "--sac-updates-per-decision", "2"]
+    else:                                  # 6 decisions in minibatches of 2, 4 epochs: 12 minibatch updates
+        monkeypatch.setattr(ppo, "rescore_chain", costly(ppo.rescore_chain))
+        more = ["--group-size", "2", "--minibatch-size", "2", "--target-kl", "1e9"]
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    assert main(_tiny_finetune_args(ckpt, out, "--algo", algo, "--env-steps", "100000",
+                                    "--max-cpu-minutes", str(250 / 60), *more)) == 0
+    history = json.loads((out / "finetune_log.json").read_text())["history"]
+    assert len(history) == 1 and history[0]["updates"] == 3, history
+    assert 250 <= history[0]["cpu_s"] < 250 + 100 + 30                      # within one update's cost
+    assert (out / "checkpoints" / "step_0000001").is_dir() and (out / "final").is_dir()
+
+
+def test_ctrl_c_inside_a_sac_iteration_checkpoints_it_and_resume_continues_exactly(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during the 5th SAC update of the second iteration: the update finishes, a checkpoint holding
+    the iteration's progress is written and named by the interrupt line, and --resume continues inside
+    the iteration: the run ends with the uninterrupted run's weights and log."""
+    import importlib
+    import os
+    import signal
+
+    F = importlib.import_module("action_decoder.rl.finetune")
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    args = ["--algo", "sac", "--env-steps", "40", "--sac-batch-size", "4", "--sac-updates-per-decision", "2"]
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "a", *args)) == 0
+    calls, real = [], F.sac_update
+
+    def interrupted_at_17(*a, **k):                # 12 updates per iteration: the 5th of iteration 2
+        calls.append(1)
+        if len(calls) == 17:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(F, "sac_update", interrupted_at_17)
+    capsys.readouterr()
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "b", *args)) == 130
+    err = capsys.readouterr().err
+    step = tmp_path / "b" / "checkpoints" / "step_0000001"
+    assert f"continue from {step} with --resume" in err and step.is_dir(), err
+    assert len(calls) == 17 and not (tmp_path / "b" / "final").exists()
+    from action_decoder.run_dir import load_state
+    pending = load_state(step)["pending"]
+    assert len(pending["runs"]) == 5 and pending["n_updates"] == 12
+    monkeypatch.setattr(F, "sac_update", real)
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "b", *args, "--resume")) == 0
+    assert "inside iteration 2, after 5 of its 12 SAC updates" in capsys.readouterr().out
+    logs = [json.loads((tmp_path / r / "finetune_log.json").read_text())["history"] for r in "ab"]
+    clock = ("wall_s", "cpu_s", "rollout_cpu_s")
+    assert [{k: v for k, v in h.items() if k not in clock} for h in logs[0]] == \
+           [{k: v for k, v in h.items() if k not in clock} for h in logs[1]]
+    a, b = (ActionDecoderPolicy.from_pretrained(tmp_path / r / "final").state_dict() for r in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # A long iteration checkpoints inside itself (--checkpoint-minutes): updates cost 100 s of simulated CPU,
+    # so a checkpoint is due before the 4th; a crash at the 6th loses only the updates after it.
+    import time
+    clock, process_time, calls = {"extra": 0.0}, time.process_time, []
+    monkeypatch.setattr(time, "process_time", lambda: process_time() + clock["extra"])
+
+    def crash_at_6(*a, **k):
+        calls.append(1)
+        if len(calls) == 6:
+            raise RuntimeError("simulated crash")
+        clock["extra"] += 100.0
+        return real(*a, **k)
+
+    monkeypatch.setattr(F, "sac_update", crash_at_6)
+    c = _tiny_finetune_args(ckpt, tmp_path / "c", *args, "--checkpoint-minutes", str(250 / 60))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        main(c)
+    assert len(load_state(tmp_path / "c" / "checkpoints" / "step_0000000")["pending"]["runs"]) == 3
+    monkeypatch.setattr(F, "sac_update", real)
+    assert main([*c, "--resume"]) == 0
+    assert "inside iteration 1, after 3 of its 12 SAC updates" in capsys.readouterr().out
+    c_final = ActionDecoderPolicy.from_pretrained(tmp_path / "c" / "final").state_dict()
+    assert all(torch.equal(a[k], c_final[k]) for k in a)
+
+
+def test_an_interrupt_before_the_first_checkpoint_names_no_checkpoint(tmp_path, capsys, monkeypatch):
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("action_decoder.rl.finetune", interrupted)
+    assert main(["finetune", "--checkpoint", str(tmp_path / "bc"), "--output-dir", str(tmp_path / "ft")]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"action-decoder: interrupted before the first checkpoint in {tmp_path / 'ft'}: nothing to "
+                   f"resume, run it again"]

@@ -4,14 +4,20 @@ One iteration = one episode on each of `num_envs` lockstep envs (layouts seeded 
 iteration number, below the evaluation seeds), then PPO epochs on the stored chains or
 SAC steps on a replay buffer. Checkpoints (`checkpoints/step_N`, `checkpoints/last`) are
 written atomically at iteration boundaries with the critic, optimisers, generators and
-history, so `--resume` continues exactly. The result (`final/`) is a `save_pretrained`
+history, so `--resume` continues exactly; a SAC iteration also checkpoints inside itself
+(`checkpoint_minutes`, and on Ctrl-C) with its progress (`pending`). See `finetune` for the
+CPU budget and Ctrl-C. The result (`final/`) is a `save_pretrained`
 directory that `action-decoder eval` reads; it samples with the fine-tuned SDE by default.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import signal
+import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -44,7 +50,7 @@ SIGMA_RANGE = (1e-3, 10.0)
 """`--sigma` bounds: below, the chain's steps have no noise to explore with (densities overflow);
 above, its noise swamps the unit-scale normalised actions."""
 RUN_OPTIONS = frozenset({"checkpoint", "output_dir", "env_steps", "max_cpu_minutes", "eval_episodes", "eval_every",
-                         "checkpoint_every", "resume", "wandb", "wandb_project"})
+                         "checkpoint_every", "checkpoint_minutes", "resume", "wandb", "wandb_project"})
 """Options that set a run's budget, location or logging: `--resume` may change them; the others define the run."""
 
 
@@ -69,8 +75,7 @@ class FinetuneConfig:
     env_steps: int = 100_000
     """Environment steps to collect (the run stops at the first iteration boundary past it)."""
     max_cpu_minutes: float = 0.0
-    """Also stop at the first iteration boundary past this much CPU time of fine-tuning (0: no
-    limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
+    """Also stop once this much CPU time of fine-tuning is spent, between two updates or before a rollout it cannot pay for (0: no limit)."""
     num_envs: int = 32
     """Lockstep envs; each iteration runs one episode on each."""
     group_size: Optional[int] = None
@@ -164,6 +169,8 @@ class FinetuneConfig:
     eval_every: int = 0
     checkpoint_every: int = 5
     """Iterations between resumable checkpoints."""
+    checkpoint_minutes: float = 10.0
+    """SAC: also checkpoint inside an iteration once this many CPU minutes passed since the last checkpoint (0: off)."""
     resume: bool = False
     wandb: bool = False
     """Also log to Weights & Biases (pip install "action-decoder[wandb]"). TensorBoard events and
@@ -189,7 +196,7 @@ def _check(cfg: FinetuneConfig) -> None:
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "lr_warmup_updates",
-                 "shaping_scale", "max_cpu_minutes"):
+                 "shaping_scale", "max_cpu_minutes", "checkpoint_minutes"):
         if not getattr(cfg, name) >= 0:                 # NaN fails too
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
@@ -333,15 +340,46 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
     return act
 
 
+@contextlib.contextmanager
+def graceful_interrupt():
+    """While the block runs (in the main thread), a first Ctrl-C (SIGINT) only sets the yielded
+    flag["set"], which the loop reads between updates; a second one raises KeyboardInterrupt at once."""
+    flag = {"set": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def on_sigint(signum, frame):
+        if flag["set"]:
+            raise KeyboardInterrupt
+        flag["set"] = True
+        print("finetune: interrupted; stopping at the next update or rollout's end to write a checkpoint "
+              "(Ctrl-C again stops at once)", file=sys.stderr, flush=True)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def finetune(cfg: FinetuneConfig) -> Path:
     """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
-    locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once."""
+    locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once.
+
+    Budget: the run stops before a rollout the CPU left cannot pay for (its cost measured on the
+    previous rollout) and between two updates (SAC steps, PPO minibatches) once `max_cpu_minutes`
+    is spent, so it ends within about one update's cost of the budget; the iteration it cut logs
+    the updates it took (`updates`) and is checkpointed. Ctrl-C stops the same way, after the current
+    update (or rollout), writes a checkpoint and raises KeyboardInterrupt: an interrupted SAC
+    iteration is checkpointed with its progress (`pending`) so that `--resume` continues it exactly;
+    a PPO iteration ends at its last update, as with the budget."""
     _check(cfg)
-    with run_dir_lock(Path(cfg.output_dir)):
-        return _finetune(cfg)
+    with run_dir_lock(Path(cfg.output_dir)), graceful_interrupt() as interrupted:
+        return _finetune(cfg, interrupted)
 
 
-def _finetune(cfg: FinetuneConfig) -> Path:
+def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
     from ..envs import evaluate, make_env
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
@@ -371,7 +409,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
         buffer = ReplayBuffer(cfg.buffer_size)
     gen = torch.Generator().manual_seed(cfg.seed)
-    iteration, env_steps, history, evals = 0, 0, [], []
+    iteration, env_steps, history, evals, pending = 0, 0, [], [], None
+    interrupted = {"set": False} if interrupted is None else interrupted
 
     bc_digest = weights_digest(bc.state_dict())
     if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
@@ -392,7 +431,10 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         gen.set_state(st["gen"])
         _set_rng_state(st["rng"])
         iteration, env_steps, history, evals = st["iteration"], st["env_steps"], st["history"], st["evals"]
-        print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps)", flush=True)
+        pending = st.get("pending")                 # an iteration interrupted between its SAC updates
+        inside = (f"; inside iteration {iteration + 1}, after {len(pending['runs'])} of its "
+                  f"{pending['n_updates']} SAC updates" if pending else "")
+        print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps{inside})", flush=True)
     elif (held := existing_run(out)) is not None:
         if cfg.resume:
             raise ValueError(f"--resume: {out} holds a run ({held}) but no checkpoint to continue from; "
@@ -430,63 +472,121 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     envs = [make_env(task, seed=cfg.seed * 1000 + i) for i in range(cfg.num_envs)]
     credited = trained_slice(cfg.sde_steps, cfg.trained_steps)
     t0 = time.perf_counter()
-    cpu0 = time.process_time() - (history[-1].get("cpu_s", 0.0) if history else 0.0)   # carried over a resume
+    spent = pending["cpu_s"] if pending else history[-1].get("cpu_s", 0.0) if history else 0.0
+    cpu0 = time.process_time() - spent                                                   # carried over a resume
+    rollout_cpu = history[-1].get("rollout_cpu_s", 0.0) if history else 0.0
+    last_save = {"cpu": time.process_time()}                                  # CPU time of the latest checkpoint
+
+    def cpu_left() -> float:
+        return 60 * cfg.max_cpu_minutes - (time.process_time() - cpu0) if cfg.max_cpu_minutes > 0 else math.inf
 
     def out_of_budget() -> bool:
-        return env_steps >= cfg.env_steps or (cfg.max_cpu_minutes > 0 and
-                                              time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
+        return env_steps >= cfg.env_steps or cpu_left() <= 0
+
+    def stop_updates() -> bool:
+        """Checked between two updates: Ctrl-C asked to stop, or the CPU budget is spent."""
+        return interrupted["set"] or cpu_left() <= 0
+
+    def save_checkpoint(partial: Optional[dict] = None) -> Path:
+        state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
+                 "config": asdict(cfg), "bc_weights_sha256": bc_digest,
+                 "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                 "gen": gen.get_state(), "rng": _rng_state()}
+        if buffer is not None:
+            state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict(),
+                         temperature=temperature.state_dict())
+        if partial is not None:          # a SAC iteration paused between its updates
+            state["pending"] = {**partial, "cpu_s": time.process_time() - cpu0}
+        last_save["cpu"] = time.process_time()
+        return write_checkpoint(out, iteration, policy, state)
+
+    def interrupt(partial: Optional[dict] = None):
+        """Ctrl-C: checkpoint what was done (when anything was), then stop."""
+        if iteration > 0 or partial is not None:
+            print(f"finetune: interrupted; wrote {save_checkpoint(partial)}", file=sys.stderr, flush=True)
+        for env in envs:
+            env.close()
+        logger.close()
+        raise KeyboardInterrupt
 
     group = episodes_per_layout(cfg)
     critic_warmup = 1 if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
-    while not out_of_budget():
-        seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
-        policy.eval()
-        act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
-        ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
-        rec = ro.records
-        rewards = decision_rewards(ro, cfg, n_exec)
-        executed = ro.executed                                    # [N]: < n_exec where the episode ended mid-chunk
-        with torch.no_grad():
-            cut = executed < n_exec
-            if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
-                rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut], rec["grid"][0],
-                                                 cfg.logprob_reduce, executed[cut])
-            logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
-                                                rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
-                                  for i in range(0, len(rewards), 512)])
-        # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
-        # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
-        numel = step_numel(rec["chain"].shape, executed) if cfg.logprob_reduce == "mean" else 1.0   # per element
-        kl_rollout = float(k3_kl(logp_ref - rec["logp"], numel)[:, credited].mean())
-        norm = policy.normalizers["state"].normalize
-        if cfg.algo == "ppo":
-            with torch.no_grad():
-                values = critic(norm(ro.states), ro.progress)
-                next_values = critic(norm(ro.next_states), ro.next_progress)
-            adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
-            if group > 1:
-                adv = group_advantages(rewards, ro.last, cfg.gamma, group)
-            data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
-                    "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret,
-                    "executed": executed}
-            stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                               update_policy=group > 1 or iteration >= critic_warmup)
+
+    def run_ends() -> bool:
+        """At an iteration boundary: the env-step or CPU budget is spent, or cannot pay for the next rollout."""
+        return out_of_budget() or cpu_left() < rollout_cpu
+
+    while pending is not None or not run_ends():
+        if pending is not None:          # resumed inside a SAC iteration: its rollout is in the buffer
+            base, runs, n_updates, pending = pending["base"], pending["runs"], pending["n_updates"], None
+            rollout_cpu = base["rollout_cpu_s"]
         else:
-            buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
-                        "next_state": ro.next_states, "next_progress": ro.next_progress, "done": episode_ends(ro)})
-            stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
-            if buffer.size >= cfg.sac_batch_size:
-                runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
-                                   gen) for _ in range(n_updates)]
-                stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+            if interrupted["set"]:
+                interrupt()
+            cpu_start = time.process_time()
+            seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
+            policy.eval()
+            act = chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
+            ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
+            rec = ro.records
+            rewards = decision_rewards(ro, cfg, n_exec)
+            executed = ro.executed                                # [N]: < n_exec where the episode ended mid-chunk
+            with torch.no_grad():
+                cut = executed < n_exec
+                if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
+                    rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut],
+                                                     rec["grid"][0], cfg.logprob_reduce, executed[cut])
+                logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
+                                                    rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
+                                      for i in range(0, len(rewards), 512)])
+            # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
+            # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
+            numel = step_numel(rec["chain"].shape, executed) if cfg.logprob_reduce == "mean" else 1.0   # per element
+            kl_rollout = float(k3_kl(logp_ref - rec["logp"], numel)[:, credited].mean())
+            rollout_cpu = time.process_time() - cpu_start
+            base = {"return": float(np.mean(ro.episode_returns)), "success": float(np.mean(ro.episode_success)),
+                    "episode_length": float(np.mean(ro.episode_lengths)), "decisions": len(rewards),
+                    "kl_bc": kl_rollout, "rollout_cpu_s": rollout_cpu, "env_steps": ro.env_steps}
+            norm = policy.normalizers["state"].normalize
+            if cfg.algo == "ppo":
+                with torch.no_grad():
+                    values = critic(norm(ro.states), ro.progress)
+                    next_values = critic(norm(ro.next_states), ro.next_progress)
+                adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
+                if group > 1:
+                    adv = group_advantages(rewards, ro.last, cfg.gamma, group)
+                data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress,
+                        "chain": rec["chain"], "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref,
+                        "adv": adv, "ret": ret, "executed": executed}
+                stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
+                                   update_policy=group > 1 or iteration >= critic_warmup, stop=stop_updates)
+            else:
+                buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
+                            "next_state": ro.next_states, "next_progress": ro.next_progress,
+                            "done": episode_ends(ro)})
+                runs = []
+                n_updates = (max(1, int(cfg.sac_updates_per_decision * len(rewards)))
+                             if buffer.size >= cfg.sac_batch_size else 0)
+        if cfg.algo == "sac":            # checked between updates: Ctrl-C pauses the iteration, the budget cuts it
+            while len(runs) < n_updates:
+                if interrupted["set"]:
+                    interrupt({"base": base, "runs": runs, "n_updates": n_updates})
+                if cpu_left() <= 0:
+                    break
+                if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
+                    save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates})     # a long iteration
+                runs.append(sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
+                                       make_batch, cfg, gen))
+            stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]} if runs else {}
+            stats["updates"] = len(runs)
         iteration += 1
-        env_steps += ro.env_steps
+        env_steps += base["env_steps"]
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma else 1.0
-        row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
-               "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), "sigma_mult": mult, "sigma_scale": cfg.sigma * mult, **stats,
-               "kl_bc": kl_rollout,
-               "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
+        row = {"iteration": iteration, "env_steps": env_steps, "return": base["return"], "success": base["success"],
+               "episode_length": base["episode_length"], "decisions": base["decisions"], "sigma_mult": mult,
+               "sigma_scale": cfg.sigma * mult, **stats, "kl_bc": base["kl_bc"],
+               "rollout_cpu_s": base["rollout_cpu_s"], "wall_s": time.perf_counter() - t0,
+               "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
         history.append(row)
@@ -494,18 +594,15 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
                 f"epochs {row['epochs']} lr {row['lr']:.2e}" if "ratio_min" in row else ""
         print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
-              f"σ×{mult:.3f} kl_bc {kl_rollout:.4f}{ratio}", flush=True)
+              f"σ×{mult:.3f} kl_bc {row['kl_bc']:.4f}{ratio}", flush=True)
+        if interrupted["set"]:
+            interrupt()
         if cfg.eval_every and iteration % cfg.eval_every == 0:
             run_eval()
-        if iteration % cfg.checkpoint_every == 0 or out_of_budget():
-            state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
-                     "config": asdict(cfg), "bc_weights_sha256": bc_digest,
-                     "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-                     "gen": gen.get_state(), "rng": _rng_state()}
-            if buffer is not None:
-                state.update(q_target=q_target.state_dict(), buffer=buffer.state_dict(),
-                             temperature=temperature.state_dict())
-            write_checkpoint(out, iteration, policy, state)
+        if iteration % cfg.checkpoint_every == 0 or run_ends():
+            save_checkpoint()
+    if interrupted["set"]:                 # the last iteration's checkpoint is written
+        interrupt()
     if not evals or evals[-1]["iteration"] != iteration:
         run_eval()
     for env in envs:

@@ -10,7 +10,7 @@ the float rounding of re-scoring in another batch composition (`rescore_rounding
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -149,7 +149,8 @@ def warmup_lr(lr: float, updates_done: int, warmup_updates: int) -> float:
 
 
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
-               data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
+               data: dict, cfg, generator: torch.Generator, update_policy: bool = True,
+               stop: Optional[Callable[[], bool]] = None) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
 
     `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
@@ -171,7 +172,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     1/ratio and overflowed to inf on the clean-chunk head's sharp last step. With `kl_coef` > 0 the loss
     adds `kl_coef` × `kl_penalty` to BC, and `kl_bc_update` logs k3's KL(π_θ ‖ π_BC) averaged over the update's
     minibatches. `approx_kl_first_update` is the approximate KL on the minibatch right after the iteration's
-    first update; `updates` the number of policy updates the iteration took.
+    first update; `updates` the number of policy updates the iteration took. `stop`, when given, is
+    asked before each minibatch (a CPU budget, Ctrl-C): True ends the epochs there, as the KL stop does.
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
     trained = trained_slice(K, cfg.trained_steps)
@@ -186,10 +188,13 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0, "updates": 0}
     logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc_update", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
-    first, stop = True, False
+    first, stop_now = True, False
     for epoch in range(cfg.ppo_epochs):
         perm = torch.randperm(n, generator=generator)
         for start in range(0, n, cfg.minibatch_size):
+            if stop is not None and stop():
+                stop_now = True
+                break
             idx = perm[start:start + cfg.minibatch_size]
             optimizer.zero_grad(set_to_none=True)
             if update_policy:
@@ -249,7 +254,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                                            cfg.target_kl, cfg.lr / 100, cfg.lr * 10)
                 if too_far:                            # too far from the rollout policy: stop here
                     optimizer.zero_grad(set_to_none=True)
-                    stop = True
+                    stop_now = True
                     break
             first = False
             value = value_net(data["state_norm"][idx], data["progress"][idx])
@@ -266,7 +271,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             optimizer.step()
             stats["updates"] += int(update_policy)
         stats["epochs"] = epoch + 1
-        if stop:
+        if stop_now:
             break
     stats["lr"] = float(optimizer.param_groups[0]["lr"])
     if len(logs["approx_kl"]) > 1:      # measured on the minibatch after the iteration's first update
