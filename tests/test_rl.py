@@ -917,3 +917,34 @@ def test_an_interrupt_before_the_first_checkpoint_names_no_checkpoint(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"action-decoder: interrupted before the first checkpoint in {tmp_path / 'ft'}: nothing to "
                    f"resume, run it again"]
+
+
+def test_best_by_evaluation_is_kept_beside_the_last_weights(tmp_path, monkeypatch, capsys):
+    """Evaluations 0.50 (start), 0.75 (iteration 1), 0.60 (iteration 2, the last): final/ keeps the last
+    weights and says so, best/ keeps iteration 1's with its evaluation, and the run output names both."""
+    import importlib
+
+    from action_decoder.model_card import CARD_NAME
+
+    F = importlib.import_module("action_decoder.rl.finetune")
+    scores = iter([0.5, 0.5, 0.75, 0.7, 0.6, 0.8])                    # (sde, ode) per evaluation
+    monkeypatch.setattr("action_decoder.envs.evaluate", lambda *a, **k: {"success_rate": next(scores)})
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    assert main(_tiny_finetune_args(ckpt, out, "--env-steps", "48", "--group-size", "2", "--minibatch-size", "4",
+                                    "--eval-episodes", "3", "--eval-every", "1", "--checkpoint-every", "1")) == 0
+    best = json.loads((out / F.BEST / F.BEST_EVAL).read_text())
+    assert (best["iteration"], best["success_sde"], best["success_ode"], best["episodes"]) == (1, 0.75, 0.7, 3)
+    assert json.loads((out / "finetune_log.json").read_text())["best"]["iteration"] == 1
+    weights = {d: ActionDecoderPolicy.from_pretrained(d).state_dict()
+               for d in (out / F.BEST, out / "checkpoints" / "step_0000001", out / "final", out / "checkpoints" / "step_0000002")}
+    same = lambda a, b: all(torch.equal(weights[a][k], weights[b][k]) for k in weights[a])   # noqa: E731
+    assert same(out / F.BEST, out / "checkpoints" / "step_0000001")
+    assert same(out / "final", out / "checkpoints" / "step_0000002") and not same(out / "final", out / F.BEST)
+    assert "best weights by closed-loop evaluation" in (out / F.BEST / CARD_NAME).read_text()
+    card = (out / "final" / CARD_NAME).read_text()
+    assert "These are the last weights" in card and "holds the best by evaluation (iteration 1" in card
+    printed = capsys.readouterr().out
+    assert f"saved {out / 'final'}: the last weights" in printed
+    assert f"best by evaluation: {out / F.BEST}, iteration 1, success sde=0.750 ode=0.700" in printed
+    assert "finetune_weights" not in json.loads((out / "checkpoints" / "step_0000002" / "config.json").read_text())["extra"]

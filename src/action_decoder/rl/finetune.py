@@ -29,8 +29,8 @@ import torch
 from ..evaluate import make_policy_fn
 from ..model_card import weights_digest
 from ..policy import ActionDecoderPolicy
-from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
-                       save_final, write_checkpoint)
+from ..run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state,
+                       run_dir_lock, save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import TwinQ, ValueNet
@@ -176,6 +176,16 @@ class FinetuneConfig:
     """Also log to Weights & Biases (pip install "action-decoder[wandb]"). TensorBoard events and
     finetune_log.jsonl are always written to the output directory, per iteration, at its env steps."""
     wandb_project: str = "action-decoder"
+
+
+BEST, BEST_EVAL = "best", "best_eval.json"
+"""`out/best`: the weights of the run's best evaluation (`eval_rank`), with that evaluation in `best_eval.json`."""
+
+
+def eval_rank(row: dict) -> tuple:
+    """What makes an evaluation better: success with the SDE (the fine-tuned policy's default sampler),
+    then with the ODE. Among equal ones the earliest is kept."""
+    return row["success_sde"], row["success_ode"]
 
 
 def episodes_per_layout(cfg: FinetuneConfig) -> int:
@@ -466,6 +476,23 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                    record=False)
         print(f"eval @ {env_steps} env steps: success sde={row['success_sde']:.3f} ode={row['success_ode']:.3f}",
               flush=True)
+        if eval_rank(row) > max(map(eval_rank, evals[:-1]), default=(-1.0, -1.0)):
+            note = (f"These are the best weights by closed-loop evaluation of an RL fine-tuning run ({cfg.algo} on "
+                    f"{task}): iteration {iteration}, {env_steps} env steps, success {row['success_sde']:.2f} with "
+                    f"the SDE and {row['success_ode']:.2f} with the ODE on {cfg.eval_episodes} evaluation episodes "
+                    f"(seed {cfg.seed}); `final/` beside this directory holds the run's last weights.")
+            path = save_weights(BEST, note)
+            (path / BEST_EVAL).write_text(json.dumps({**row, "episodes": cfg.eval_episodes, "seed": cfg.seed,
+                                                      "task": task}, indent=1) + "\n")
+            print(f"eval: best so far, saved {path}", flush=True)
+
+    def save_weights(name: str, note: str) -> Path:
+        """`save_final` to `out/<name>`, its model card saying which weights these are (`note`)."""
+        policy.config.extra["finetune_weights"] = note
+        try:
+            return save_final(out, policy, env_steps, name=name)
+        finally:
+            policy.config.extra.pop("finetune_weights", None)
 
     if not evals:
         run_eval()
@@ -607,10 +634,21 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         run_eval()
     for env in envs:
         env.close()
-    final = save_final(out, policy, env_steps)
+    best = max(evals, key=eval_rank) if evals else None              # the earliest among equals
+    note = f"These are the last weights of an RL fine-tuning run ({cfg.algo} on {task}, {env_steps} env steps)"
+    if best is not None:
+        note += (f"; their evaluation: success {evals[-1]['success_sde']:.2f} with the SDE and "
+                 f"{evals[-1]['success_ode']:.2f} with the ODE on {cfg.eval_episodes} episodes. `best/` beside this "
+                 f"directory holds the best by evaluation (iteration {best['iteration']}, success "
+                 f"{best['success_sde']:.2f} / {best['success_ode']:.2f})")
+    final = save_weights(FINAL, note + ".")
     logger.close()
     (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
-                                                       "evals": evals}, indent=1))
+                                                       "evals": evals, "best": best}, indent=1))
     plot_curves(history, evals, out / "finetune.png", f"{cfg.algo} on {task}")
-    print(f"saved {final} ({time.perf_counter() - t0:.0f} s of fine-tuning)", flush=True)
+    print(f"saved {final}: the last weights ({time.perf_counter() - t0:.0f} s of fine-tuning)", flush=True)
+    if best is not None:
+        same = " (the last evaluation's: the same weights as final/)" if best is evals[-1] else ""
+        print(f"best by evaluation: {out / BEST}, iteration {best['iteration']}, success sde={best['success_sde']:.3f} "
+              f"ode={best['success_ode']:.3f}{same}", flush=True)
     return final
