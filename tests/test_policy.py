@@ -303,8 +303,8 @@ def test_bad_batches_name_the_key(bad, key):
 
 @pytest.mark.parametrize("mode", ["churn", "explore"])
 def test_meanflow_sde_takes_its_own_steps_not_the_one_step_of_meanflow(mode):
-    # A MeanFlow config samples its ODE in 1 step; the SDE used to take that one Euler–Maruyama
-    # step from noise too (std 0.74 under churn, 3.3 under explore for this target of std 0.4).
+    # A MeanFlow config samples its ODE in 1 step; one Euler–Maruyama step from noise would give
+    # std 0.74 for this target of std 0.4 (flows.samplers.gaussian_target_std).
     oracle = Gaussian(torch.zeros(8, 3), 0.4)
     kw = {k: v for k, v in SMALL.items() if k != "flow_sde_num_steps"}
     policy = ActionDecoderPolicy(DecoderConfig(**{**kw, "decoder_type": "mean_flow", "num_inference_timesteps": 1,
@@ -327,8 +327,13 @@ def test_sde_below_the_minimum_steps_warns_once():
         warnings.simplefilter("error")
         policy.sample(batch(actions=False), sampler="sde", steps=SDE_MIN_STEPS)
         policy.sample(batch(actions=False), sampler="ode", steps=1)
-    with pytest.warns(UserWarning, match=rf"steps: the SDE sampler with 1 step.*at least {SDE_MIN_STEPS}"):
+    with pytest.warns(UserWarning, match=rf"steps: the SDE sampler with 1 step.*at least {SDE_MIN_STEPS}") as rec:
         policy.sample(batch(actions=False), sampler="sde", steps=1)
+    # the quoted stds are this policy's σ(t)'s (closed form, checked against sampling in test_sde)
+    from action_decoder.flows.samplers import gaussian_target_std
+    quoted = [gaussian_target_std(policy.sigma, k, 0.4, policy.config.flow_sde_clip_t) for k in (1, SDE_MIN_STEPS, 10)]
+    assert (f"std {quoted[0]:.3f} at K = 1 ({quoted[1]:.3f} at K = {SDE_MIN_STEPS}, {quoted[2]:.3f} at K = 10)"
+            in str(rec[0].message)), str(rec[0].message)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         policy.sample(batch(actions=False), sampler="sde", steps=2)

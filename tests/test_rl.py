@@ -232,9 +232,9 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
 
 
 def test_shaping_is_potential_based_and_telescopes():
-    """On a real rollout, the discounted shaping of each episode sums to 0 when it ends in success
-    and to γ^n·Φ(s_n) at a time limit (Φ(s₀) = 0, independent of the first action): it cannot
-    change which policy is best."""
+    """On a real rollout, the discounted shaping of each episode sums to 0, whether it ends in success
+    or at the training cap, where the critics bootstrap nothing (Φ(s₀) = 0, independent of the first
+    action, and Φ = 0 at the cap): it cannot change which policy is best."""
     envs = [make_env("reach-v3") for _ in range(2)]
     gen = torch.Generator().manual_seed(0)
 
@@ -248,9 +248,31 @@ def test_shaping_is_potential_based_and_telescopes():
     for start, end in zip([0] + [e + 1 for e in ends[:-1]], ends):
         n = end - start + 1
         total = sum(gamma ** i * float(f[start + i]) for i in range(n))
-        tail = 0.0 if ro.terminal[end] else gamma ** n * float(ro.reward_after[end]) / 10
         assert float(ro.reward_before[start]) == 0.0
-        assert total == pytest.approx(tail, abs=1e-5)
+        assert total == pytest.approx(0.0, abs=1e-5)
+
+
+def test_shaped_return_equals_the_unshaped_one_at_the_cap_in_closed_form():
+    """Two hand-made episodes of three decisions (env rewards 10·Φ), one ending at the training cap
+    and one in success: the shaping per decision is γΦ₁ − 0, γΦ₂ − Φ₁, γ·0 − Φ₂ in both, and the
+    discounted shaped return equals the success reward's, whatever Φ the episode ends near. An
+    episode cut before the cap (an env's own limit) keeps γΦ₃, which the critic's bootstrap balances."""
+    from action_decoder.rl.finetune import decision_rewards
+
+    phi = [0.3, 0.7, 0.95]
+    ro = SimpleNamespace(reward_before=torch.tensor([0.0, 3.0, 7.0] * 3), reward_after=torch.tensor([3.0, 7.0, 9.5] * 3),
+                         terminal=torch.tensor([False, False, False, False, False, True, False, False, False]),
+                         next_progress=torch.tensor([0.3, 0.6, 1.0, 0.3, 0.6, 0.9, 0.3, 0.6, 0.9]))
+    gamma = 0.9
+    expected = torch.tensor([gamma * phi[0], gamma * phi[1] - phi[0], -phi[1]] * 2
+                            + [gamma * phi[0], gamma * phi[1] - phi[0], gamma * phi[2] - phi[1]])
+    assert torch.allclose(shaping(ro, gamma), expected)
+    cfg = SimpleNamespace(reward="success", success_reward=1.0, shaping_scale=0.5, gamma=gamma)
+    r = decision_rewards(ro, cfg, n_exec=4)
+    ret = [sum(gamma ** i * float(r[3 * e + i]) for i in range(3)) for e in range(3)]
+    assert ret[0] == pytest.approx(0.0, abs=1e-6)                        # capped: no k·γ³·Φ(s₃) left
+    assert ret[1] == pytest.approx(gamma ** 2 * 1.0, abs=1e-6)           # success: the success reward alone
+    assert ret[2] == pytest.approx(0.5 * gamma ** 3 * phi[2], abs=1e-6)  # cut early: the bootstrap's share
 
 
 def test_group_advantages_compare_episodes_of_one_layout():
@@ -634,9 +656,9 @@ def test_adaptive_rate_comes_down_when_the_kl_stop_ends_an_iteration():
     real = ppo.k3_kl
     calls = []
 
-    def kl_after_the_first(x):                      # 1.8 × target from the second minibatch on
+    def kl_after_the_first(x, numel=1.0):           # 1.8 × target from the second minibatch on
         calls.append(1)
-        return real(x) if len(calls) == 1 else torch.full_like(real(x), 0.09)
+        return real(x, numel) if len(calls) == 1 else torch.full_like(real(x), 0.09)
 
     ppo.k3_kl = kl_after_the_first
     try:
@@ -704,3 +726,225 @@ def test_finetune_resume_refuses_another_bc_checkpoint(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--checkpoint: " in err[0] and "other BC weights" in err[0], err
     assert main([*args, "--checkpoint", str(ckpt), "--env-steps", "48", "--resume"]) == 0
+
+
+def test_mean_reduced_log_probs_give_kl_per_element_from_the_summed_ratio():
+    """With `--logprob-reduce mean` the KLs are the chunk's KL / (H·D): in closed form for Gaussians
+    (N(μ, 1) against N(0, 1) on n elements: KL = n·μ²/2), and through `ppo_update`, whose approx_kl,
+    kl_bc_update and penalty gradient with averaged log-probs are the summed ones / n."""
+    n, mu = 16, 0.5
+    x = mu + torch.randn(200_000, n, generator=torch.Generator().manual_seed(0))
+    log_ratio_ref = (Normal(0.0, 1.0).log_prob(x) - Normal(mu, 1.0).log_prob(x))          # [S, n]
+    per_element = float(ppo.k3_kl(log_ratio_ref.mean(-1, keepdim=True), n).mean())
+    assert per_element == pytest.approx(mu ** 2 / 2, rel=0.03)
+    assert float(ppo.k3_kl(log_ratio_ref.mean(-1)).mean()) < 0.25 * mu ** 2 / 2         # k3 of the mean: not it
+    lp = torch.tensor([[0.3]], requires_grad=True)
+    g = torch.autograd.grad(ppo.kl_penalty(lp, torch.zeros(1, 1), n).sum(), lp)[0]
+    assert float(g) == pytest.approx(n * 0.3)          # ∇ of ½(n·Δ)²/n: the summed one's gradient / n per unit sum
+
+    base = finetune_policy(_bc(), sigma=0.5, learn_sigma=True, steps=5)
+    batch = _batch(12)
+    with torch.no_grad():
+        full = base.chain_log_prob(batch, _ppo_data(base)["chain"], _ppo_data(base)["grid"], reduce="none")
+    data = _ppo_data(base)
+    shift = torch.linspace(-0.4, 0.6, 12)[:, None].expand(12, 5)                         # per-chain log-ratios
+    stats, grads = {}, {}
+    for reduce in ("sum", "mean"):
+        numel = 1.0 if reduce == "sum" else H * D
+        lp = full.sum((-2, -1)) / numel                                                   # [12, 5]
+        d = {**data, "logp_old": lp + shift / numel, "logp_ref": lp - 2 * shift / numel, "adv": torch.zeros(12)}
+        policy = copy.deepcopy(base)
+        cfg = SimpleNamespace(trained_steps=5, ppo_epochs=1, minibatch_size=12, logprob_reduce=reduce,
+                              ratio_tol=float("inf"), clip_eps=0.2, kl_coef=1.0, target_kl=100.0, vf_coef=0.5,
+                              grad_clip=1e9, lr_schedule="fixed", lr_warmup_updates=0)
+        opt = torch.optim.SGD(policy.model.parameters(), lr=0.0)
+        stats[reduce] = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, d, cfg,
+                                   torch.Generator().manual_seed(0))
+        grads[reduce] = torch.cat([p.grad.flatten() for p in policy.model.parameters() if p.grad is not None])
+    for key in ("approx_kl", "kl_bc_update"):
+        assert stats["mean"][key] == pytest.approx(stats["sum"][key] / (H * D), rel=1e-4), key
+    assert torch.allclose(grads["mean"], grads["sum"] / (H * D), rtol=1e-3, atol=1e-7)
+
+
+@pytest.mark.parametrize("schedule", ["explore", "fixed"])
+def test_on_policy_check_passes_chains_sampled_in_small_batches_and_rescored_in_micro_batches(schedule):
+    """The rollout samples on the envs still running (1–3 rows), PPO re-scores in micro-batches of 25:
+    float32 rounds the network's products differently, by more than --ratio-tol at a small σ. The
+    check allows that rounding (`ppo.rescore_rounding`) and still catches a re-scoring with another σ."""
+    torch.manual_seed(0)
+    cfg_d = DecoderConfig(decoder_type="flow_matching", state_dim=S, action_dim=D, action_chunk_size=8,
+                          n_action_steps=4, hidden_size=32, num_hidden_layers=2, num_attention_heads=2,
+                          num_key_value_heads=1, extra={"tasks": ["reach-v3"]})
+    bc = ActionDecoderPolicy(cfg_d, _stats(torch.Generator().manual_seed(0)))
+    with torch.no_grad():
+        for p in bc.model.parameters():
+            p.mul_(2.0 if p.dim() == 2 else 1.0)          # larger velocities, as trained networks have
+    policy = finetune_policy(bc, sigma=0.003, learn_sigma=True, steps=10, schedule=schedule)
+    states = torch.randn(45, S, generator=torch.Generator().manual_seed(1))
+    gen, parts, i = torch.Generator().manual_seed(0), [], 0
+    with torch.no_grad():
+        while i < len(states):
+            b = 1 + i % 3
+            parts.append(sample_chain(policy, {"state": states[i:i + b]}, 10, gen, executed=4))
+            i += b
+    data = {"states": states, "state_norm": states, "progress": torch.zeros(45),
+            "chain": torch.cat([r.chain for r in parts]), "grid": parts[0].grid,
+            "logp_old": torch.cat([r.step_log_probs for r in parts]), "adv": torch.randn(45, generator=gen),
+            "ret": torch.zeros(45)}
+    data["logp_ref"] = data["logp_old"]
+    cfg = SimpleNamespace(trained_steps=10, ppo_epochs=1, minibatch_size=45, logprob_reduce="sum", ratio_tol=1e-4,
+                          clip_eps=0.2, kl_coef=0.0, target_kl=1e9, vf_coef=0.5, grad_clip=1.0, lr_schedule="fixed",
+                          lr_warmup_updates=0)
+    opt = torch.optim.SGD(policy.model.parameters(), lr=0.0)
+    stats = ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+    assert stats["ratio_dev_before_update"] > cfg.ratio_tol           # rounding alone exceeds --ratio-tol here
+    with torch.no_grad():
+        policy.sigma.log_scale.fill_(0.05)                              # σ re-scored 5 % off
+    with pytest.raises(RuntimeError, match="ratio is not 1"):
+        ppo_update(policy, ValueNet(S), opt, lambda s: {"state": s}, data, cfg, torch.Generator().manual_seed(0))
+
+
+def _tiny_finetune_args(ckpt, out, *more):
+    return ["finetune", "--checkpoint", str(ckpt), "--output-dir", str(out), "--num-envs", "2",
+            "--max-episode-steps", "12", "--sde-steps", "3", "--trained-steps", "2", "--eval-episodes", "0", *more]
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_cpu_budget_holds_within_one_update(tmp_path, monkeypatch, algo):
+    """Each update costs 100 s of (simulated) CPU: with a budget of 250 s the run stops after the update
+    that spends it (the third), inside the first iteration, not after that iteration's 12 updates; the
+    iteration logs the updates it took and is checkpointed, and final/ is written."""
+    import importlib
+    import time
+
+    F = importlib.import_module("action_decoder.rl.finetune")              # the module, not the function
+    clock, real = {"extra": 0.0}, time.process_time
+    monkeypatch.setattr(time, "process_time", lambda: real() + clock["extra"])
+
+    def costly(fn):
+        def update(*a, **k):
+            clock["extra"] += 100.0
+            return fn(*a, **k)
+        return update
+
+    if algo == "sac":                      # 2 envs × 3 decisions × 2 updates per decision = 12 SAC updates
+        monkeypatch.setattr(F, "sac_update", costly(F.sac_update))
+        more = ["--sac-batch-size", "4", "--sac-updates-per-decision", "2"]
+    else:                                  # 6 decisions in minibatches of 2, 4 epochs: 12 minibatch updates
+        monkeypatch.setattr(ppo, "rescore_chain", costly(ppo.rescore_chain))
+        more = ["--group-size", "2", "--minibatch-size", "2", "--target-kl", "1e9"]
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    assert main(_tiny_finetune_args(ckpt, out, "--algo", algo, "--env-steps", "100000",
+                                    "--max-cpu-minutes", str(250 / 60), *more)) == 0
+    history = json.loads((out / "finetune_log.json").read_text())["history"]
+    assert len(history) == 1 and history[0]["updates"] == 3, history
+    assert 250 <= history[0]["cpu_s"] < 250 + 100 + 30                      # within one update's cost
+    assert (out / "checkpoints" / "step_0000001").is_dir() and (out / "final").is_dir()
+
+
+def test_ctrl_c_inside_a_sac_iteration_checkpoints_it_and_resume_continues_exactly(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during the 5th SAC update of the second iteration: the update finishes, a checkpoint holding
+    the iteration's progress is written and named by the interrupt line, and --resume continues inside
+    the iteration: the run ends with the uninterrupted run's weights and log."""
+    import importlib
+    import os
+    import signal
+
+    F = importlib.import_module("action_decoder.rl.finetune")
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    args = ["--algo", "sac", "--env-steps", "40", "--sac-batch-size", "4", "--sac-updates-per-decision", "2"]
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "a", *args)) == 0
+    calls, real = [], F.sac_update
+
+    def interrupted_at_17(*a, **k):                # 12 updates per iteration: the 5th of iteration 2
+        calls.append(1)
+        if len(calls) == 17:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(F, "sac_update", interrupted_at_17)
+    capsys.readouterr()
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "b", *args)) == 130
+    err = capsys.readouterr().err
+    step = tmp_path / "b" / "checkpoints" / "step_0000001"
+    assert f"continue from {step} with --resume" in err and step.is_dir(), err
+    assert len(calls) == 17 and not (tmp_path / "b" / "final").exists()
+    from action_decoder.run_dir import load_state
+    pending = load_state(step)["pending"]
+    assert len(pending["runs"]) == 5 and pending["n_updates"] == 12
+    monkeypatch.setattr(F, "sac_update", real)
+    assert main(_tiny_finetune_args(ckpt, tmp_path / "b", *args, "--resume")) == 0
+    assert "inside iteration 2, after 5 of its 12 updates" in capsys.readouterr().out
+    logs = [json.loads((tmp_path / r / "finetune_log.json").read_text())["history"] for r in "ab"]
+    clock = ("wall_s", "cpu_s", "rollout_cpu_s")
+    assert [{k: v for k, v in h.items() if k not in clock} for h in logs[0]] == \
+           [{k: v for k, v in h.items() if k not in clock} for h in logs[1]]
+    a, b = (ActionDecoderPolicy.from_pretrained(tmp_path / r / "final").state_dict() for r in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # A long iteration checkpoints inside itself (--checkpoint-minutes): updates cost 100 s of simulated CPU,
+    # so a checkpoint is due before the 4th; a crash at the 6th loses only the updates after it.
+    import time
+    clock, process_time, calls = {"extra": 0.0}, time.process_time, []
+    monkeypatch.setattr(time, "process_time", lambda: process_time() + clock["extra"])
+
+    def crash_at_6(*a, **k):
+        calls.append(1)
+        if len(calls) == 6:
+            raise RuntimeError("simulated crash")
+        clock["extra"] += 100.0
+        return real(*a, **k)
+
+    monkeypatch.setattr(F, "sac_update", crash_at_6)
+    c = _tiny_finetune_args(ckpt, tmp_path / "c", *args, "--checkpoint-minutes", str(250 / 60))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        main(c)
+    assert len(load_state(tmp_path / "c" / "checkpoints" / "step_0000000")["pending"]["runs"]) == 3
+    monkeypatch.setattr(F, "sac_update", real)
+    assert main([*c, "--resume"]) == 0
+    assert "inside iteration 1, after 3 of its 12 updates" in capsys.readouterr().out
+    c_final = ActionDecoderPolicy.from_pretrained(tmp_path / "c" / "final").state_dict()
+    assert all(torch.equal(a[k], c_final[k]) for k in a)
+
+
+def test_an_interrupt_before_the_first_checkpoint_names_no_checkpoint(tmp_path, capsys, monkeypatch):
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("action_decoder.rl.finetune", interrupted)
+    assert main(["finetune", "--checkpoint", str(tmp_path / "bc"), "--output-dir", str(tmp_path / "ft")]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"action-decoder: interrupted before the first checkpoint in {tmp_path / 'ft'}: nothing to "
+                   f"resume, run it again"]
+
+
+def test_best_by_evaluation_is_kept_beside_the_last_weights(tmp_path, monkeypatch, capsys):
+    """Evaluations 0.50 (start), 0.75 (iteration 1), 0.60 (iteration 2, the last): final/ keeps the last
+    weights and says so, best/ keeps iteration 1's with its evaluation, and the run output names both."""
+    import importlib
+
+    from action_decoder.model_card import CARD_NAME
+
+    F = importlib.import_module("action_decoder.rl.finetune")
+    scores = iter([0.5, 0.5, 0.75, 0.7, 0.6, 0.8])                    # (sde, ode) per evaluation
+    monkeypatch.setattr("action_decoder.envs.evaluate", lambda *a, **k: {"success_rate": next(scores)})
+    ckpt, out = tmp_path / "bc", tmp_path / "ft"
+    _bc().save_pretrained(ckpt)
+    assert main(_tiny_finetune_args(ckpt, out, "--env-steps", "48", "--group-size", "2", "--minibatch-size", "4",
+                                    "--eval-episodes", "3", "--eval-every", "1", "--checkpoint-every", "1")) == 0
+    best = json.loads((out / F.BEST / F.BEST_EVAL).read_text())
+    assert (best["iteration"], best["success_sde"], best["success_ode"], best["episodes"]) == (1, 0.75, 0.7, 3)
+    assert json.loads((out / "finetune_log.json").read_text())["best"]["iteration"] == 1
+    weights = {d: ActionDecoderPolicy.from_pretrained(d).state_dict()
+               for d in (out / F.BEST, out / "checkpoints" / "step_0000001", out / "final", out / "checkpoints" / "step_0000002")}
+    same = lambda a, b: all(torch.equal(weights[a][k], weights[b][k]) for k in weights[a])   # noqa: E731
+    assert same(out / F.BEST, out / "checkpoints" / "step_0000001")
+    assert same(out / "final", out / "checkpoints" / "step_0000002") and not same(out / "final", out / F.BEST)
+    assert "best weights by closed-loop evaluation" in (out / F.BEST / CARD_NAME).read_text()
+    card = (out / "final" / CARD_NAME).read_text()
+    assert "These are the last weights" in card and "holds the best by evaluation (iteration 1" in card
+    printed = capsys.readouterr().out
+    assert f"saved {out / 'final'}: the last weights" in printed
+    assert f"best by evaluation: {out / F.BEST}, iteration 1, success sde=0.750 ode=0.700" in printed
+    assert "finetune_weights" not in json.loads((out / "checkpoints" / "step_0000002" / "config.json").read_text())["extra"]

@@ -432,3 +432,49 @@ def test_editing_the_returned_actions_in_place_leaves_the_chain_and_its_log_prob
     assert torch.equal(res.chain, chain)
     again = chain_log_prob(velocity, res.chain, 0.5, grid=res.grid)
     torch.testing.assert_close(again, res.step_log_probs)
+
+
+def test_squashed_eps_log_prob_keeps_its_gradient_on_sigma_only():
+    """squash=True with the ε form: the tanh log-det enters log_prob's value, not its gradient, so the
+    network gets none and σ's log-scale gets exactly −B·K·H·D (the ε form's −Σ ∂log std_k)."""
+    net, velocity = _net_velocity()
+    sigma = LearnableSigma(ExploringSigma(0.7), init=0.3)
+    params = list(net.parameters()) + [sigma.log_scale]
+    noise = torch.randn(16, 4, 2, generator=torch.Generator().manual_seed(1)) * 2
+    kw = dict(return_logprob=True, squash=True, generator=torch.Generator().manual_seed(0))
+    eps = sample_sde(velocity, noise, 5, sigma, logprob="eps", **kw)
+    full = sample_sde(velocity, noise, 5, sigma, logprob="full", generator=torch.Generator().manual_seed(0),
+                      return_logprob=True, squash=True)
+    assert torch.allclose(eps.log_prob, full.log_prob)                      # the same value
+    g = torch.autograd.grad(eps.log_prob.sum(), params, allow_unused=True)
+    assert all(x is None or torch.all(x == 0) for x in g[:-1])
+    assert torch.allclose(g[-1], torch.tensor(-16.0 * 5 * 4 * 2))
+    # the log-det field itself is the pathwise one (the actions reach the network)
+    grad_det = torch.autograd.grad(eps.squash_log_det.sum(), net[0].weight)[0]
+    assert grad_det.abs().sum() > 0
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nonfinite_sigma_without_log_probs_is_refused_in_one_line(bad):
+    f = lambda x, t: -x   # noqa: E731
+    with pytest.raises(ValueError, match=rf"^sigma: expected σ\(t\) finite on every step, got σ\(0\) = {bad}"):
+        sample_sde(f, torch.randn(2, 3, 1), 5, bad)
+    late = lambda t: torch.where(t > 0.6, torch.full_like(t, bad), torch.full_like(t, 0.5))   # noqa: E731
+    with pytest.raises(ValueError, match=r"σ\(0.8\)"):
+        sample_sde(f, torch.randn(2, 3, 1), 5, late)
+
+
+@pytest.mark.parametrize("name", ["churn", "explore", "fixed"])
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_gaussian_target_std_is_what_sampling_gives(name, steps):
+    """The closed-form std of `sample_sde` on N(0, 0.4²) with its exact velocity, against sampling:
+    explore at σ(0) = 0.7 gives 0.742 at K = 1 and 0.507 at K = 2."""
+    from action_decoder.flows.samplers import gaussian_target_std
+
+    sigma = {"churn": ChurnSigma(0.7), "explore": ExploringSigma(0.7), "fixed": FixedSigma(0.7)}[name]
+    oracle = Gaussian(torch.zeros(8, 3, dtype=torch.float64), 0.4)
+    noise = torch.randn(4000, 8, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    out = sample_sde(oracle.velocity, noise, steps, sigma, generator=torch.Generator().manual_seed(1)).actions
+    assert float(out.std()) == pytest.approx(gaussian_target_std(sigma, steps), rel=0.02)
+    if name == "explore" and steps < 3:
+        assert round(gaussian_target_std(sigma, steps), 3) == {1: 0.742, 2: 0.507}[steps]

@@ -78,7 +78,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         if isinstance(cfg, (TrainConfig, FinetuneConfig)):
-            print("action-decoder: interrupted; continue from the last checkpoint with --resume", file=sys.stderr)
+            from pathlib import Path
+
+            from .run_dir import last_checkpoint
+
+            ckpt = last_checkpoint(Path(cfg.output_dir))   # name only a checkpoint that exists
+            print(f"action-decoder: interrupted; continue from {ckpt} with --resume" if ckpt is not None else
+                  f"action-decoder: interrupted before the first checkpoint in {cfg.output_dir}: nothing to "
+                  f"resume, run it again", file=sys.stderr)
         else:
             print(f"action-decoder: interrupted; {type(cfg).__name__.removesuffix('Config').lower()} writes its "
                   f"results at the end, so nothing was saved: run it again", file=sys.stderr)

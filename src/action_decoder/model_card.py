@@ -109,7 +109,8 @@ def merge_result(results: list[dict], row: dict) -> list[dict]:
 
 
 def build_card(config: DecoderConfig, num_parameters: int, results: list[dict]) -> ModelCard:
-    """The card of a policy with this config, parameter count and measured results."""
+    """The card of a policy with this config, parameter count and measured results (with
+    `config.extra["finetune_weights"]`, a "Fine-tuning" section says which weights of an RL run these are)."""
     train = config.extra.get("train") or {}
     tasks = list(config.extra.get("tasks") or [])
     dataset = hub_dataset_id(train.get("dataset"))
@@ -125,6 +126,8 @@ def build_card(config: DecoderConfig, num_parameters: int, results: list[dict]) 
                       f"state (and optional context tokens or a VLM's KV cache) to a chunk of "
                       f"{config.action_chunk_size} actions.", "", "## Policy", "", *_policy_table(config, num_parameters),
                       "", "## Training", "", *_training_lines(train, tasks, config.extra.get("data") or {}),
+                      *(["", "## Fine-tuning", "", config.extra["finetune_weights"]]
+                        if config.extra.get("finetune_weights") else []),
                       "", "## Results", "", *_results_lines(results), "", "## Use", "", "```python",
                       "from action_decoder import ActionDecoderPolicy", "",
                       'policy = ActionDecoderPolicy.from_pretrained("<this repo id or directory>").eval()',

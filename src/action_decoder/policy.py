@@ -28,6 +28,7 @@ from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, m
                     sample_sde_rtc, velocity_from_meanflow,
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
+from .flows.samplers import gaussian_target_std
 from .noise_actor import NoiseActor
 from .normalize import make_normalizers
 from .state_layout import network_state
@@ -288,18 +289,22 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     def resolve_steps(self, sampler: Optional[str], steps: Optional[int] = None) -> int:
         """The step count `sample` uses: `steps`, else `flow_sde_num_steps` for the SDE and
         `num_inference_timesteps` for the others. The SDE has its own count because MeanFlow's
-        K = 1 would make it one Euler–Maruyama step from noise (std 0.74 or 3.3 for a target of
-        std 0.4); below `SDE_MIN_STEPS` it warns once, as an explicit K may be a chosen trade-off."""
+        K = 1 would make it one Euler–Maruyama step from noise (std 0.74 for a target of std 0.4
+        at σ(0) = 0.7); below `SDE_MIN_STEPS` it warns once, as an explicit K may be a chosen
+        trade-off, quoting that std for this policy's σ(t) (`flows.samplers.gaussian_target_std`)."""
         chosen = self.resolve_sampler(sampler)
         if steps is None:
             steps = self.config.flow_sde_num_steps if chosen == "sde" else self.config.num_inference_timesteps
         if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
             raise ValueError(f"steps: expected a positive integer, got {steps!r}")
         if chosen == "sde" and steps < SDE_MIN_STEPS and not self._warned_steps:
-            warnings.warn(f"steps: the SDE sampler with {steps} step(s) leaves noise it injects unremoved (a Gaussian "
-                          f"of std 0.4 comes out with std 0.74 (churn) or 3.3 (explore) at K = 1, 0.55 (explore) "
-                          f"at K = 2); use at least {SDE_MIN_STEPS} (flow_sde_num_steps, default 10)",
-                          UserWarning, stacklevel=3)
+            std = [gaussian_target_std(self.sigma, k, 0.4, self.config.flow_sde_clip_t,
+                                       next(self.parameters()).device)
+                   for k in (steps, SDE_MIN_STEPS, 10)]
+            warnings.warn(f"steps: the SDE sampler with {steps} step(s) is far from the marginals it preserves in the limit: with this "
+                          f"policy's σ(t) a Gaussian target of std 0.4 comes out with std {std[0]:.3f} at K = {steps} "
+                          f"({std[1]:.3f} at K = {SDE_MIN_STEPS}, {std[2]:.3f} at K = 10); use at least "
+                          f"{SDE_MIN_STEPS} (flow_sde_num_steps, default 10)", UserWarning, stacklevel=3)
             self._warned_steps = True
         return int(steps)
 

@@ -168,11 +168,11 @@ def write_checkpoint(out: Path, step: int, policy, state: dict) -> Path:
     return final
 
 
-def save_final(out: Path, policy, step: int) -> Path:
-    """`out/final` in `save_pretrained` format with `FINAL_STEP` (the logged `step` of these weights),
-    replaced atomically. When the weights are those the old `final/` holds (a finished run resumed),
-    its measured results and evaluation files stay."""
-    final, tmp = out / FINAL, out / ".tmp_final"
+def save_final(out: Path, policy, step: int, name: str = FINAL) -> Path:
+    """`out/final` (or `out/<name>`) in `save_pretrained` format with `FINAL_STEP` (the logged `step` of
+    these weights), replaced atomically. When the weights are those the old directory holds (a finished
+    run resumed), its measured results and evaluation files stay."""
+    final, tmp = out / name, out / f".tmp_{name}"
     with _writing(final, out, tmp):
         shutil.rmtree(tmp, ignore_errors=True)
         same = model_card.carried_results(model_card.read_results(final), model_card.weights_digest(policy.state_dict()))

@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .paths import (AvgVelocity, Generators, Velocity, check_chunk, checked_call, compute_dtype, randn_rows,
-                    resolve_steps)
+from .paths import (AvgVelocity, Generators, Velocity, check_chunk, check_steps, checked_call, compute_dtype,
+                    randn_rows, resolve_steps)
 from .sigma import ChurnSigma, FixedSigma
 
 LOGPROB_FORMS = ("full", "eps")
@@ -122,19 +122,21 @@ def _step_coefficients(sigma, grid: Tensor, clip_t: float):
     return 1 - c * dt, dt * (1 + c * t), sig * dt.sqrt()             # a, b, std: each [K]
 
 
-def _check_density_std(std: Tensor, grid: Tensor) -> None:
-    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step.
+def _check_density_std(std: Tensor, grid: Tensor, density: bool = True) -> None:
+    """A step of std 0 (or NaN/inf) has no density: σ must be positive and finite on every step
+    (`density=False`, sampling without log-probs: finite, as NaN or inf makes NaN actions).
 
     std_k = σ(t_k)·√Δt_k with Δt_k > 0, so std [K] is checked. One host sync per call, made
     after the loop's work is queued, so that on a GPU it waits only for results the caller
     reads anyway.
     """
-    bad = ~(torch.isfinite(std) & (std > 0))                             # [K]
+    bad = ~(torch.isfinite(std) & (std > 0)) if density else ~torch.isfinite(std)       # [K]
     if bool(bad.any()):
         k = int(bad.nonzero()[0])
         sig = float(std[k]) / float(grid[k + 1] - grid[k]) ** 0.5
-        raise ValueError(f"sigma: expected σ(t) > 0 and finite on every step to compute log-probs, "
-                         f"got σ({float(grid[k]):.6g}) = {sig:.6g} (step {k} of {len(std)})")
+        expected = "> 0 and finite on every step to compute log-probs" if density else "finite on every step"
+        raise ValueError(f"sigma: expected σ(t) {expected}, got σ({float(grid[k]):.6g}) = {sig:.6g} "
+                         f"(step {k} of {len(std)})")
 
 
 def _gaussian_log_prob(z: Tensor, std: Tensor, reduce: str) -> Tensor:
@@ -170,7 +172,8 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     With `return_logprob`, `step_log_probs[:, k]` is log N(x_{k+1}; mean_k, std_k² I) of the
     returned chain, computed from the chain itself: `chain_log_prob` with the same velocity,
     σ and grid gives the same values (PPO ratio 1). σ must then be positive and finite on
-    every step (ValueError, checked once per call). `logprob` picks only where the gradient goes:
+    every step (ValueError, checked once per call); without log-probs σ must be finite (σ = 0 is
+    the ODE). `logprob` picks only where the gradient goes:
       "full" — the chain is data (score-function / PPO form): each step's network call sees
                the detached state x_k, so gradients reach the velocity's parameters through
                the means and σ through the stds, exactly as for `chain_log_prob` of the
@@ -183,7 +186,10 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
     reduce="sum" sums over H×D (the density of the chunk); "mean" averages (Flow-GRPO's
     choice: a ratio of such means is the true ratio to the power 1/(H·D)); "none" keeps
     [.., H, D]. squash=True applies tanh once after the last step and subtracts
-    log|d tanh/dx| from `log_prob` (not from `step_log_probs`).
+    log|d tanh/dx| from `log_prob` (not from `step_log_probs`). In the "eps" form that correction
+    enters `log_prob`'s value but not its gradient, so the gradient stays on σ only (through the
+    chain the log-det would pull the velocity network toward the origin; SAC's `actor_sample`
+    treats its box squash the same way); `squash_log_det` itself keeps its pathwise gradient.
     """
     _check_logprob_args(logprob, reduce, clip_t)
     sigma = ChurnSigma() if sigma is None else _as_sigma(sigma)
@@ -214,17 +220,40 @@ def sample_sde(velocity: Velocity, noise: Tensor, steps: int = 10,
         log_det = 2 * (math.log(2) - y - F.softplus(-2 * y))
         result.squash_log_det = log_det if reduce == "none" else (
             log_det.sum((-2, -1)) if reduce == "sum" else log_det.mean((-2, -1)))
+    _check_density_std(std, grid, density=return_logprob)
     if return_logprob:
-        _check_density_std(std, grid)
         z = (chain[:, 1:].detach() - means_t) / stds.reshape(B, K, 1, 1)     # [B, K, H, D]
         if logprob == "eps":
             z = eps + (z - eps).detach()           # the chain's value, the ε form's gradient (0)
         result.step_log_probs = _gaussian_log_prob(z, stds, reduce)
         result.log_prob = result.step_log_probs.sum(1)
-        if squash:
-            result.log_prob = result.log_prob - result.squash_log_det
+        if squash:              # the ε form: the log-det's value, not its gradient (σ only)
+            log_det = result.squash_log_det.detach() if logprob == "eps" else result.squash_log_det
+            result.log_prob = result.log_prob - log_det
     result.actions = result.actions.to(noise.dtype)
     return result
+
+
+def gaussian_target_std(sigma, steps: int, target_std: float = 0.4, clip_t: float = 1e-2,
+                        device: Optional[torch.device] = None) -> float:
+    """The std per element of `sample_sde`'s output on the uniform grid of `steps` steps when the
+    data is N(0, target_std²) and the velocity is that data's exact one, v(x, t) = g(t)·x with
+    g = (t·s² − (1 − t)) / ((1 − t)² + t²·s²), s = `target_std` (`oracles.Gaussian`).
+
+    Each step is then affine in x, so the variance follows var_{k+1} = (a_k + b_k·g(t_k))²·var_k + std_k²
+    from var_0 = 1 (closed form, float64). Enough steps return `target_std`; few leave part of the
+    noise the steps inject. `device`: where σ's parameters live."""
+    check_steps(steps)
+    sigma = _as_sigma(sigma)
+    grid = torch.linspace(0, 1, steps + 1, dtype=torch.float64, device=device)
+    with torch.no_grad():
+        a, b, std = _step_coefficients(sigma, grid, clip_t)
+    s2 = float(target_std) ** 2
+    var = 1.0
+    for t, a_k, b_k, std_k in zip(grid[:-1].tolist(), a.tolist(), b.tolist(), std.tolist()):
+        g = (t * s2 - (1 - t)) / ((1 - t) ** 2 + t * t * s2)
+        var = (a_k + b_k * g) ** 2 * var + std_k ** 2
+    return math.sqrt(var)
 
 
 def chain_log_prob(velocity: Velocity, chain: Tensor, sigma, grid: Optional[Tensor] = None,

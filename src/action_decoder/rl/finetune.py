@@ -5,14 +5,21 @@ One iteration = one episode on each of `num_envs` lockstep envs (layouts seeded 
 iteration number, below the evaluation seeds), then PPO epochs on the stored chains, or
 SAC / DSRL steps on a replay buffer. Checkpoints (`checkpoints/step_N`, `checkpoints/last`) are
 written atomically at iteration boundaries with the critic, optimisers, generators and
-history, so `--resume` continues exactly. The result (`final/`) is a `save_pretrained`
-directory that `action-decoder eval` reads; it samples with the fine-tuned SDE by default.
+history, so `--resume` continues exactly; a SAC or DSRL iteration also checkpoints inside itself
+(`checkpoint_minutes`, and on Ctrl-C) with its progress (`pending`). See `finetune` for the
+CPU budget and Ctrl-C. The result (`final/`) is a `save_pretrained`
+directory that `action-decoder eval` reads; it samples with the fine-tuned SDE by default (DSRL:
+through the noise actor and the decoder's deterministic sampler).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import signal
+import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -25,8 +32,8 @@ from ..evaluate import make_policy_fn
 from ..model_card import weights_digest
 from ..noise_actor import kl_to_prior
 from ..policy import ActionDecoderPolicy
-from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
-                       save_final, write_checkpoint)
+from ..run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state,
+                       run_dir_lock, save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import TwinQ, ValueNet
@@ -34,7 +41,7 @@ from .dsrl import dsrl_policy, dsrl_update, noise_actor_fn
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, Temperature, make_target, sac_update
-from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box
+from .sde_policy import finetune_policy, rescore_chain, sample_chain, squash_to_box, step_numel
 
 TRAIN_LAYOUT_BASE, TRAIN_LAYOUT_SPAN = 500_000, 400_000
 """Training layouts: seeds in [500 000, 900 000), apart from demonstrations (low seeds) and
@@ -47,7 +54,7 @@ SIGMA_RANGE = (1e-3, 10.0)
 """`--sigma` bounds: below, the chain's steps have no noise to explore with (densities overflow);
 above, its noise swamps the unit-scale normalised actions."""
 RUN_OPTIONS = frozenset({"checkpoint", "output_dir", "env_steps", "max_cpu_minutes", "eval_episodes", "eval_every",
-                         "checkpoint_every", "resume", "wandb", "wandb_project"})
+                         "checkpoint_every", "checkpoint_minutes", "resume", "wandb", "wandb_project"})
 """Options that set a run's budget, location or logging: `--resume` may change them; the others define the run."""
 
 
@@ -73,8 +80,7 @@ class FinetuneConfig:
     env_steps: int = 100_000
     """Environment steps to collect (the run stops at the first iteration boundary past it)."""
     max_cpu_minutes: float = 0.0
-    """Also stop at the first iteration boundary past this much CPU time of fine-tuning (0: no
-    limit). CPU rather than wall time, so that runs sharing a machine compare fairly."""
+    """Also stop once this much CPU time of fine-tuning is spent, between two updates or before a rollout it cannot pay for (0: no limit)."""
     num_envs: Optional[int] = None
     """Lockstep envs; each iteration runs one episode on each (default 32; 8 with DSRL)."""
     group_size: Optional[int] = None
@@ -127,11 +133,11 @@ class FinetuneConfig:
     """`--reward success`: reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
     """`--reward success`: weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
-    Φ = 0 after success. It guides credit assignment without changing the optimal policy (0: success
-    only). Keep k well below `success_reward`: a truncated episode that hovers at the goal earns
-    ≈ k·γⁿ, so with k = 1 succeeding would be worth little more than nearly succeeding."""
+    Φ = 0 at the start, after success and at the training cap (`shaping`): over an episode it sums to 0,
+    so it guides credit assignment without changing the optimal policy (0: success only). Keep k
+    below `success_reward`: each decision's shaping is up to k, which the critic must average out."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
-    """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO)."""
+    """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO; the KLs are then per element)."""
     trained_steps: int = 10
     """The last N denoising steps enter the PPO/KL objective. Their noise is what moves the executed
     actions: on a 3-demo reach policy the last 5 of 10 steps carry 97 % of the executed-action
@@ -150,7 +156,7 @@ class FinetuneConfig:
     Group advantages do not use the value head, so with `--group-size` above 1 the policy updates
     from the first iteration and this option is refused."""
     ratio_tol: float = 1e-4
-    """PPO: tolerated |ratio − 1| before the first update of an iteration."""
+    """PPO: tolerated |ratio − 1| before the first update of an iteration, on top of float rounding (`ppo.rescore_rounding`)."""
     alpha: float = 0.01
     """SAC: initial entropy weight α (log-probs per action dimension)."""
     alpha_lr: float = 3e-2
@@ -180,11 +186,23 @@ class FinetuneConfig:
     eval_every: int = 0
     checkpoint_every: int = 5
     """Iterations between resumable checkpoints."""
+    checkpoint_minutes: float = 10.0
+    """SAC: also checkpoint inside an iteration once this many CPU minutes passed since the last checkpoint (0: off)."""
     resume: bool = False
     wandb: bool = False
     """Also log to Weights & Biases (pip install "action-decoder[wandb]"). TensorBoard events and
     finetune_log.jsonl are always written to the output directory, per iteration, at its env steps."""
     wandb_project: str = "action-decoder"
+
+
+BEST, BEST_EVAL = "best", "best_eval.json"
+"""`out/best`: the weights of the run's best evaluation (`eval_rank`), with that evaluation in `best_eval.json`."""
+
+
+def eval_rank(row: dict) -> tuple:
+    """What makes an evaluation better: success with the SDE (the fine-tuned policy's default sampler),
+    then with the ODE (DSRL's only sampler). Among equal ones the earliest is kept."""
+    return row.get("success_sde", row["success_ode"]), row["success_ode"]
 
 
 ALGO_DEFAULTS = {"num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
@@ -201,8 +219,13 @@ def with_defaults(cfg: FinetuneConfig) -> FinetuneConfig:
                            if getattr(cfg, k) is None and cfg.algo in v})
 
 
+def _successes(row: dict) -> str:
+    """An evaluation's success rates by sampler: "sde=0.450 ode=0.500" (DSRL: ode only)."""
+    return " ".join(f"{k[len('success_'):]}={v:.3f}" for k, v in row.items() if k.startswith("success_"))
+
+
 def episodes_per_layout(cfg: FinetuneConfig) -> int:
-    """Episodes per training layout: `--group-size`, by default 4 with PPO and 1 with SAC and DSRL."""
+    """Episodes per training layout: `--group-size`, by default 4 with PPO and 1 with SAC."""
     return cfg.group_size if cfg.group_size is not None else 4 if cfg.algo == "ppo" else 1
 
 
@@ -219,7 +242,7 @@ def _check(cfg: FinetuneConfig) -> None:
         if not getattr(cfg, name) > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive number, got {getattr(cfg, name)}")
     for name in ("kl_coef", "alpha_lr", "vf_coef", "eval_episodes", "eval_every", "lr_warmup_updates",
-                 "shaping_scale", "max_cpu_minutes"):
+                 "shaping_scale", "max_cpu_minutes", "checkpoint_minutes"):
         if not getattr(cfg, name) >= 0:                 # NaN fails too
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, got {getattr(cfg, name)}")
     for name in ("sigma", "alpha", "lr", "sigma_lr", "critic_lr", "clip_eps", "target_kl", "ratio_tol", "grad_clip",
@@ -328,10 +351,14 @@ def plot_curves(history: list, evals: list, path: Path, title: str) -> None:
 
 def shaping(ro, gamma: float) -> torch.Tensor:
     """γ·Φ(s′) − Φ(s) per decision [N], Φ = env reward / 10 (Meta-World's rewards lie in [0, 10]),
-    Φ(terminal) = 0 and Φ(s₀) = 0 (the env's reward at s₀ comes only with an action, which would make
-    the first term depend on it). Summed over an episode it telescopes to the bootstrapped tail at a
-    time limit, so the policy it favours is the one the success reward favours."""
-    phi_next = torch.where(ro.terminal, torch.zeros_like(ro.reward_after), ro.reward_after / 10)
+    Φ(s₀) = 0 (the env's reward at s₀ comes only with an action, which would make the first term
+    depend on it) and Φ(s′) = 0 wherever the critics bootstrap nothing (`episode_ends`: success, and
+    the training cap, which ends the MDP of heads that see the episode's progress). Summed over an
+    episode that ends there, it telescopes to 0, so the shaped return is the unshaped one and the
+    policy it favours is the one the success reward favours (an episode that hovers near the goal
+    until the cap keeps no k·γⁿ·Φ(sₙ)). An episode cut before the cap without success (an env's own
+    limit) keeps Φ(s′), which the critics' bootstrap there balances."""
+    phi_next = torch.where(episode_ends(ro), torch.zeros_like(ro.reward_after), ro.reward_after / 10)
     return gamma * phi_next - ro.reward_before / 10
 
 
@@ -362,39 +389,47 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
     return act
 
 
-def _dsrl_iteration(policy, critics: dict, temperature, optimizers: dict, buffer: ReplayBuffer, make_batch, cfg,
-                    gen: torch.Generator, ro, rewards: torch.Tensor, out_of_budget) -> tuple[dict, float]:
-    """Store an iteration's decisions, then `sac_updates_per_decision` DSRL steps per decision (the last one
-    where the CPU budget runs out). Returns the mean update statistics and `kl_bc`: the actor's KL to N(0, I)
-    per noise element on the iteration's states, which bounds the KL of its chunks to the BC policy's."""
-    rec = ro.records
-    buffer.add({"state": ro.states, "progress": ro.progress, "noise": rec["noise"], "actions": rec["actions"],
-                "reward": rewards, "next_state": ro.next_states, "next_progress": ro.next_progress,
-                "done": episode_ends(ro)})
-    stats = {}
-    if buffer.size >= cfg.sac_batch_size:
-        runs = []
-        for _ in range(max(1, int(cfg.sac_updates_per_decision * len(rewards)))):
-            runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen))
-            if out_of_budget():
-                break
-        stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
-        stats["updates"] = len(runs)
-    with torch.no_grad():
-        mean, log_std = policy.noise_actor(**policy.noise_actor_inputs(make_batch(ro.states)))
-    return stats, float(kl_to_prior(mean, log_std).mean())
+@contextlib.contextmanager
+def graceful_interrupt():
+    """While the block runs (in the main thread), a first Ctrl-C (SIGINT) only sets the yielded
+    flag["set"], which the loop reads between updates; a second one raises KeyboardInterrupt at once."""
+    flag = {"set": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def on_sigint(signum, frame):
+        if flag["set"]:
+            raise KeyboardInterrupt
+        flag["set"] = True
+        print("finetune: interrupted; stopping at the next update or rollout's end to write a checkpoint "
+              "(Ctrl-C again stops at once)", file=sys.stderr, flush=True)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def finetune(cfg: FinetuneConfig) -> Path:
     """Run the fine-tuning; returns the `final/` checkpoint directory. The output directory is
-    locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once."""
+    locked for the run (`run_dir.run_dir_lock`): a second run on it stops at once.
+
+    Budget: the run stops before a rollout the CPU left cannot pay for (its cost measured on the
+    previous rollout) and between two updates (SAC steps, PPO minibatches) once `max_cpu_minutes`
+    is spent, so it ends within about one update's cost of the budget; the iteration it cut logs
+    the updates it took (`updates`) and is checkpointed. Ctrl-C stops the same way, after the current
+    update (or rollout), writes a checkpoint and raises KeyboardInterrupt: an interrupted SAC
+    iteration is checkpointed with its progress (`pending`) so that `--resume` continues it exactly;
+    a PPO iteration ends at its last update, as with the budget."""
     cfg = with_defaults(cfg)
     _check(cfg)
-    with run_dir_lock(Path(cfg.output_dir)):
-        return _finetune(cfg)
+    with run_dir_lock(Path(cfg.output_dir)), graceful_interrupt() as interrupted:
+        return _finetune(cfg, interrupted)
 
 
-def _finetune(cfg: FinetuneConfig) -> Path:
+def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
     from ..envs import evaluate, make_env
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
@@ -442,7 +477,8 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
         buffer = ReplayBuffer(cfg.buffer_size)
     gen = torch.Generator().manual_seed(cfg.seed)
-    iteration, env_steps, history, evals = 0, 0, [], []
+    iteration, env_steps, history, evals, pending = 0, 0, [], [], None
+    interrupted = {"set": False} if interrupted is None else interrupted
 
     bc_digest = weights_digest(bc.state_dict())
     if cfg.resume and (ckpt := last_checkpoint(out)) is not None:
@@ -466,7 +502,10 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         gen.set_state(st["gen"])
         _set_rng_state(st["rng"])
         iteration, env_steps, history, evals = st["iteration"], st["env_steps"], st["history"], st["evals"]
-        print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps)", flush=True)
+        pending = st.get("pending")                 # an iteration interrupted between its SAC updates
+        inside = (f"; inside iteration {iteration + 1}, after {len(pending['runs'])} of its "
+                  f"{pending['n_updates']} updates" if pending else "")
+        print(f"resume: continuing from {ckpt} (iteration {iteration}, {env_steps} env steps{inside})", flush=True)
     elif (held := existing_run(out)) is not None:
         if cfg.resume:
             raise ValueError(f"--resume: {out} holds a run ({held}) but no checkpoint to continue from; "
@@ -496,46 +535,114 @@ def _finetune(cfg: FinetuneConfig) -> Path:
             row[f"success_{sampler}"] = res["success_rate"]
         evals.append(row)
         logger.log(env_steps, {k: v for k, v in row.items() if k.startswith("success_")}, "eval", record=False)
-        print(f"eval @ {env_steps} env steps: success " + " ".join(f"{k[8:]}={v:.3f}" for k, v in row.items()
-                                                                 if k.startswith("success_")), flush=True)
+        print(f"eval @ {env_steps} env steps: success {_successes(row)}", flush=True)
+        if eval_rank(row) > max(map(eval_rank, evals[:-1]), default=(-1.0, -1.0)):
+            note = (f"These are the best weights by closed-loop evaluation of an RL fine-tuning run ({cfg.algo} on "
+                    f"{task}): iteration {iteration}, {env_steps} env steps, success {_successes(row)} on "
+                    f"{cfg.eval_episodes} evaluation episodes (seed {cfg.seed}); `final/` beside this directory holds "
+                    f"the run's last weights.")
+            path = save_weights(BEST, note)
+            (path / BEST_EVAL).write_text(json.dumps({**row, "episodes": cfg.eval_episodes, "seed": cfg.seed,
+                                                      "task": task}, indent=1) + "\n")
+            print(f"eval: best so far, saved {path}", flush=True)
+
+    def save_weights(name: str, note: str) -> Path:
+        """`save_final` to `out/<name>`, its model card saying which weights these are (`note`)."""
+        policy.config.extra["finetune_weights"] = note
+        try:
+            return save_final(out, policy, env_steps, name=name)
+        finally:
+            policy.config.extra.pop("finetune_weights", None)
 
     if not evals:
         run_eval()
     envs = [make_env(task, seed=cfg.seed * 1000 + i) for i in range(cfg.num_envs)]
     credited = trained_slice(cfg.sde_steps, cfg.trained_steps)
     t0 = time.perf_counter()
-    cpu0 = time.process_time() - (history[-1].get("cpu_s", 0.0) if history else 0.0)   # carried over a resume
+    spent = pending["cpu_s"] if pending else history[-1].get("cpu_s", 0.0) if history else 0.0
+    cpu0 = time.process_time() - spent                                                   # carried over a resume
+    rollout_cpu = history[-1].get("rollout_cpu_s", 0.0) if history else 0.0
+    last_save = {"cpu": time.process_time()}                                  # CPU time of the latest checkpoint
+
+    def cpu_left() -> float:
+        return 60 * cfg.max_cpu_minutes - (time.process_time() - cpu0) if cfg.max_cpu_minutes > 0 else math.inf
 
     def out_of_budget() -> bool:
-        return env_steps >= cfg.env_steps or (cfg.max_cpu_minutes > 0 and
-                                              time.process_time() - cpu0 >= 60 * cfg.max_cpu_minutes)
+        return env_steps >= cfg.env_steps or cpu_left() <= 0
+
+    def stop_updates() -> bool:
+        """Checked between two updates: Ctrl-C asked to stop, or the CPU budget is spent."""
+        return interrupted["set"] or cpu_left() <= 0
+
+    def save_checkpoint(partial: Optional[dict] = None) -> Path:
+        state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
+                 "config": asdict(cfg), "bc_weights_sha256": bc_digest,
+                 "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                 "gen": gen.get_state(), "rng": _rng_state()}
+        if buffer is not None:
+            state.update(buffer=buffer.state_dict(), temperature=temperature.state_dict(),
+                         **({} if dsrl else {"q_target": q_target.state_dict()}))
+        if critics:
+            state["critics"] = {k: net.state_dict() for k, net in critics.items()}
+        if partial is not None:          # a SAC or DSRL iteration paused between its updates
+            state["pending"] = {**partial, "cpu_s": time.process_time() - cpu0}
+        last_save["cpu"] = time.process_time()
+        return write_checkpoint(out, iteration, policy, state)
+
+    def interrupt(partial: Optional[dict] = None):
+        """Ctrl-C: checkpoint what was done (when anything was), then stop."""
+        if iteration > 0 or partial is not None:
+            print(f"finetune: interrupted; wrote {save_checkpoint(partial)}", file=sys.stderr, flush=True)
+        for env in envs:
+            env.close()
+        logger.close()
+        raise KeyboardInterrupt
 
     group = episodes_per_layout(cfg)
     critic_warmup = 1 if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
-    while not out_of_budget():
-        seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
-        policy.eval()
-        act = noise_actor_fn(policy, make_batch, gen) if dsrl else \
-            chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
-        ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
-        rec = ro.records
-        rewards = decision_rewards(ro, cfg, n_exec)
-        executed = ro.executed                                    # [N]: < n_exec where the episode ended mid-chunk
-        if dsrl:
-            stats, kl_rollout = _dsrl_iteration(policy, critics, temperature, optimizers, buffer, make_batch, cfg,
-                                                gen, ro, rewards, out_of_budget)
+
+    def run_ends() -> bool:
+        """At an iteration boundary: the env-step or CPU budget is spent, or cannot pay for the next rollout."""
+        return out_of_budget() or cpu_left() < rollout_cpu
+
+    while pending is not None or not run_ends():
+        if pending is not None:          # resumed inside a SAC or DSRL iteration: its rollout is in the buffer
+            base, runs, n_updates, pending = pending["base"], pending["runs"], pending["n_updates"], None
+            rollout_cpu = base["rollout_cpu_s"]
         else:
-            with torch.no_grad():
-                cut = executed < n_exec
-                if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
-                    rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut], rec["grid"][0],
-                                                     cfg.logprob_reduce, executed[cut])
-                logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]), rec["chain"][i:i + 512],
-                                                    rec["grid"][0], cfg.logprob_reduce, executed[i:i + 512])
-                                      for i in range(0, len(rewards), 512)])
-            # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
-            # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
-            kl_rollout = float(k3_kl(logp_ref - rec["logp"])[:, credited].mean())
+            if interrupted["set"]:
+                interrupt()
+            cpu_start = time.process_time()
+            seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
+            policy.eval()
+            act = noise_actor_fn(policy, make_batch, gen) if dsrl else \
+                chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
+            ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
+            rec = ro.records
+            rewards = decision_rewards(ro, cfg, n_exec)
+            executed = ro.executed                                # [N]: < n_exec where the episode ended mid-chunk
+            if dsrl:        # KL of the actor to N(0, I) per noise element: bounds its chunks' KL to the BC policy's
+                with torch.no_grad():
+                    mean, log_std = policy.noise_actor(**policy.noise_actor_inputs(make_batch(ro.states)))
+                kl_rollout = float(kl_to_prior(mean, log_std).mean())
+            else:
+                with torch.no_grad():
+                    cut = executed < n_exec
+                    if bool(cut.any()):         # their unexecuted rows leave the log-prob, as the other rows' do
+                        rec["logp"][cut] = rescore_chain(policy, make_batch(ro.states[cut]), rec["chain"][cut],
+                                                         rec["grid"][0], cfg.logprob_reduce, executed[cut])
+                    logp_ref = torch.cat([rescore_chain(reference, make_batch(ro.states[i:i + 512]),
+                                                        rec["chain"][i:i + 512], rec["grid"][0], cfg.logprob_reduce,
+                                                        executed[i:i + 512])
+                                          for i in range(0, len(rewards), 512)])
+                # KL(π_θ ‖ π_BC) per credited step on the chains π_θ just sampled: the one `kl_bc` (printed, logged,
+                # plotted); the update's penalty term, on chains of the policy before the update, is `kl_bc_update`.
+                numel = step_numel(rec["chain"].shape, executed) if cfg.logprob_reduce == "mean" else 1.0  # per element
+                kl_rollout = float(k3_kl(logp_ref - rec["logp"], numel)[:, credited].mean())
+            rollout_cpu = time.process_time() - cpu_start
+            base = {"return": float(np.mean(ro.episode_returns)), "success": float(np.mean(ro.episode_success)),
+                    "episode_length": float(np.mean(ro.episode_lengths)), "decisions": len(rewards),
+                    "kl_bc": kl_rollout, "rollout_cpu_s": rollout_cpu, "env_steps": ro.env_steps}
             norm = policy.normalizers["state"].normalize
             if cfg.algo == "ppo":
                 with torch.no_grad():
@@ -544,28 +651,39 @@ def _finetune(cfg: FinetuneConfig) -> Path:
                 adv, ret = gae(rewards, values, next_values, episode_ends(ro), ro.last, cfg.gamma, cfg.gae_lambda)
                 if group > 1:
                     adv = group_advantages(rewards, ro.last, cfg.gamma, group)
-                data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress, "chain": rec["chain"],
-                        "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref, "adv": adv, "ret": ret,
-                        "executed": executed}
+                data = {"states": ro.states, "state_norm": norm(ro.states), "progress": ro.progress,
+                        "chain": rec["chain"], "grid": rec["grid"][0], "logp_old": rec["logp"], "logp_ref": logp_ref,
+                        "adv": adv, "ret": ret, "executed": executed}
                 stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
-                                   update_policy=group > 1 or iteration >= critic_warmup)
+                                   update_policy=group > 1 or iteration >= critic_warmup, stop=stop_updates)
             else:
                 buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
-                            "next_state": ro.next_states, "next_progress": ro.next_progress, "done": episode_ends(ro)})
-                stats, n_updates = {}, max(1, int(cfg.sac_updates_per_decision * len(rewards)))
-                if buffer.size >= cfg.sac_batch_size:
-                    runs = [sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer, make_batch, cfg,
-                                       gen) for _ in range(n_updates)]
-                    stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+                            "next_state": ro.next_states, "next_progress": ro.next_progress,
+                            "done": episode_ends(ro), **({"noise": rec["noise"]} if dsrl else {})})
+                runs = []
+                n_updates = (max(1, int(cfg.sac_updates_per_decision * len(rewards)))
+                             if buffer.size >= cfg.sac_batch_size else 0)
+        if cfg.algo != "ppo":            # checked between updates: Ctrl-C pauses the iteration, the budget cuts it
+            while len(runs) < n_updates:
+                if interrupted["set"]:
+                    interrupt({"base": base, "runs": runs, "n_updates": n_updates})
+                if cpu_left() <= 0:
+                    break
+                if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
+                    save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates})     # a long iteration
+                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen) if dsrl
+                            else sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
+                                            make_batch, cfg, gen))
+            stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]} if runs else {}
+            stats["updates"] = len(runs)
         iteration += 1
-        env_steps += ro.env_steps
+        env_steps += base["env_steps"]
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma and not dsrl else 1.0
-        row = {"iteration": iteration, "env_steps": env_steps, "return": float(np.mean(ro.episode_returns)),
-               "success": float(np.mean(ro.episode_success)), "episode_length": float(np.mean(ro.episode_lengths)),
-               "decisions": len(rewards), **({} if dsrl else {"sigma_mult": mult, "sigma_scale": cfg.sigma * mult}),
-               **stats,
-               "kl_bc": kl_rollout,
-               "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - cpu0}
+        row = {"iteration": iteration, "env_steps": env_steps, "return": base["return"], "success": base["success"],
+               "episode_length": base["episode_length"], "decisions": base["decisions"],
+               **({} if dsrl else {"sigma_mult": mult, "sigma_scale": cfg.sigma * mult}), **stats, "kl_bc": base["kl_bc"],
+               "rollout_cpu_s": base["rollout_cpu_s"], "wall_s": time.perf_counter() - t0,
+               "cpu_s": time.process_time() - cpu0}
         if not all(math.isfinite(v) for v in row.values() if isinstance(v, float)):
             raise FloatingPointError(f"fine-tuning diverged at iteration {iteration} ({row}); lower --lr")
         history.append(row)
@@ -573,28 +691,33 @@ def _finetune(cfg: FinetuneConfig) -> Path:
         ratio = f" ratio [{row['ratio_min']:.3f}, {row['ratio_max']:.3f}] clip {row['clipfrac']:.3f} " \
                 f"epochs {row['epochs']} lr {row['lr']:.2e}" if "ratio_min" in row else ""
         print(f"iter {iteration} env_steps {env_steps} return {row['return']:.1f} success {row['success']:.2f} "
-              + ("" if dsrl else f"σ×{mult:.3f} ") + f"kl_bc {kl_rollout:.4f}{ratio}", flush=True)
+              + ("" if dsrl else f"σ×{mult:.3f} ") + f"kl_bc {row['kl_bc']:.4f}{ratio}", flush=True)
+        if interrupted["set"]:
+            interrupt()
         if cfg.eval_every and iteration % cfg.eval_every == 0:
             run_eval()
-        if iteration % cfg.checkpoint_every == 0 or out_of_budget():
-            state = {"iteration": iteration, "env_steps": env_steps, "history": history, "evals": evals,
-                     "config": asdict(cfg), "bc_weights_sha256": bc_digest,
-                     "critic": critic.state_dict(), "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-                     "gen": gen.get_state(), "rng": _rng_state()}
-            if buffer is not None:
-                state.update(buffer=buffer.state_dict(), temperature=temperature.state_dict(),
-                             **({} if dsrl else {"q_target": q_target.state_dict()}))
-            if critics:
-                state["critics"] = {k: net.state_dict() for k, net in critics.items()}
-            write_checkpoint(out, iteration, policy, state)
+        if iteration % cfg.checkpoint_every == 0 or run_ends():
+            save_checkpoint()
+    if interrupted["set"]:                 # the last iteration's checkpoint is written
+        interrupt()
     if not evals or evals[-1]["iteration"] != iteration:
         run_eval()
     for env in envs:
         env.close()
-    final = save_final(out, policy, env_steps)
+    best = max(evals, key=eval_rank) if evals else None              # the earliest among equals
+    note = f"These are the last weights of an RL fine-tuning run ({cfg.algo} on {task}, {env_steps} env steps)"
+    if best is not None:
+        note += (f"; their evaluation: success {_successes(evals[-1])} on {cfg.eval_episodes} episodes. `best/` "
+                 f"beside this directory holds the best by evaluation (iteration {best['iteration']}, success "
+                 f"{_successes(best)})")
+    final = save_weights(FINAL, note + ".")
     logger.close()
     (out / "finetune_log.json").write_text(json.dumps({"config": asdict(cfg), "task": task, "history": history,
-                                                       "evals": evals}, indent=1))
+                                                       "evals": evals, "best": best}, indent=1))
     plot_curves(history, evals, out / "finetune.png", f"{cfg.algo} on {task}")
-    print(f"saved {final} ({time.perf_counter() - t0:.0f} s of fine-tuning)", flush=True)
+    print(f"saved {final}: the last weights ({time.perf_counter() - t0:.0f} s of fine-tuning)", flush=True)
+    if best is not None:
+        same = " (the last evaluation's: the same weights as final/)" if best is evals[-1] else ""
+        print(f"best by evaluation: {out / BEST}, iteration {best['iteration']}, success {_successes(best)}{same}",
+              flush=True)
     return final

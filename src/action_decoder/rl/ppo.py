@@ -4,17 +4,18 @@ Each denoising step k of a stored chain is a Gaussian "action" x_{k+1} ~ N(mean_
 taken with the chunk's advantage: the ratio is per step, exp(log π_θ(x_{k+1}|x_k) − log π_old),
 clipped per step, and the objective averages over the trained steps. The chain and its
 grid are stored at rollout time and re-scored under the current weights, so before the
-first update of an iteration every ratio is 1 — checked at run time.
+first update of an iteration every ratio is 1 — checked at run time, up to `--ratio-tol` plus
+the float rounding of re-scoring in another batch composition (`rescore_rounding`).
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
 
-from .sde_policy import rescore_chain
+from .sde_policy import rescore_chain, step_numel
 
 
 def gae(rewards: Tensor, values: Tensor, next_values: Tensor, terminal: Tensor, last: Tensor,
@@ -72,16 +73,23 @@ def group_advantages(rewards: Tensor, last: Tensor, gamma: float, group_size: in
     return (groups - others).view(n_episodes, horizon)[episode, position]
 
 
-def k3_kl(log_ratio_ref: Tensor) -> Tensor:
-    """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ."""
-    return torch.expm1(log_ratio_ref) - log_ratio_ref
+def k3_kl(log_ratio_ref: Tensor, numel: float | Tensor = 1.0) -> Tensor:
+    """Schulman's non-negative KL(π_θ ‖ π_ref) estimate from log(π_ref/π_θ) on samples of π_θ.
+
+    `numel`: for log-probs averaged over the chunk (`--logprob-reduce mean`), the elements each one
+    averages (`sde_policy.step_numel`); the estimate is then that of the summed (true) log-ratio
+    divided by them, KL per element. k3 of the averaged log-ratio itself is not KL / (H·D)."""
+    x = log_ratio_ref * numel
+    return (torch.expm1(x) - x) / numel
 
 
-def kl_penalty(logp: Tensor, logp_ref: Tensor) -> Tensor:
+def kl_penalty(logp: Tensor, logp_ref: Tensor, numel: float | Tensor = 1.0) -> Tensor:
     """Per-sample loss whose gradient, on samples of π_θ, is ∇ KL(π_θ ‖ π_ref): k2 = ½ (log π_θ − log π_ref)².
     (Back-propagating `k3_kl` instead gives ∇ KL(π_ref ‖ π_θ), the reverse direction; its value, not its
-    gradient, is the estimate of KL(π_θ ‖ π_ref) that is logged.)"""
-    return 0.5 * (logp - logp_ref).square()
+    gradient, is the estimate of KL(π_θ ‖ π_ref) that is logged.) `numel` as in `k3_kl`: k2 of the
+    summed log-ratio divided by the elements, so the gradient is that of KL per element (k2 of the
+    averaged log-ratio would shrink it by numel² instead of numel)."""
+    return 0.5 * ((logp - logp_ref) * numel).square() / numel
 
 
 def trained_slice(steps: int, trained_steps: int) -> slice:
@@ -93,6 +101,29 @@ MICROBATCH_ROW_CALLS = 256
 """Rows × network calls re-scored with a live autograd graph at a time (≈ 0.7 MB per row-call
 for the default network): a minibatch of 512 chains × 10 steps kept every call's activations
 until its one backward, 3.5 GB; micro-batches accumulate the same gradient in ≈ 180 MB."""
+
+
+RESCORE_ROUNDING = 16.0
+"""Margin of `rescore_rounding` over its first-order bound."""
+
+
+def rescore_rounding(policy, chain: Tensor, grid: Tensor, logp: Tensor, numel: Tensor) -> Tensor:
+    """[b, K'] bound of the rounding error between a step's log-prob as sampled and as re-scored in
+    another batch composition (the rollout samples on the envs still running, PPO re-scores in
+    micro-batches): the network's matrix products round differently with the batch's shape, so each
+    element's mean moves by about ε·max(1, |x|), its residual z by that / std_k, and the step's
+    summed log-prob by ε·Σ max(1, |x_{k+1}|) / std_k, plus ε·|log-prob| for the sum's own rounding.
+    Scaled by `RESCORE_ROUNDING`; per element (÷ `numel`) for averaged log-probs (`numel` = 1 for sums).
+
+    `chain` [b, K'+1, H, D] and `grid` [K'+1] the re-scored steps, `logp` [b, K'] their log-probs.
+    The bound grows as σ shrinks (the densities sharpen): a stored chain re-scored with another
+    velocity, σ or grid moves the log-prob by far more at any σ."""
+    eps = torch.finfo(logp.dtype).eps
+    with torch.no_grad():
+        std = policy.sigma(grid[:-1]) * grid.diff().sqrt()                               # [K']
+        spread = chain[:, 1:].abs().clamp_min(1).sum((-2, -1))                           # [b, K']
+        summed = eps * (logp.detach().abs() * numel + spread / std)
+    return RESCORE_ROUNDING * summed / numel
 
 
 LR_STEP = 1.5
@@ -118,7 +149,8 @@ def warmup_lr(lr: float, updates_done: int, warmup_updates: int) -> float:
 
 
 def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: Callable[[Tensor], dict],
-               data: dict, cfg, generator: torch.Generator, update_policy: bool = True) -> dict:
+               data: dict, cfg, generator: torch.Generator, update_policy: bool = True,
+               stop: Optional[Callable[[], bool]] = None) -> dict:
     """Clipped-PPO epochs over one iteration's decisions; returns statistics.
 
     `data`: states [N, S], state_norm [N, S], progress [N], chain [N, K+1, H, D], grid [K+1],
@@ -140,7 +172,8 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     1/ratio and overflowed to inf on the clean-chunk head's sharp last step. With `kl_coef` > 0 the loss
     adds `kl_coef` × `kl_penalty` to BC, and `kl_bc_update` logs k3's KL(π_θ ‖ π_BC) averaged over the update's
     minibatches. `approx_kl_first_update` is the approximate KL on the minibatch right after the iteration's
-    first update; `updates` the number of policy updates the iteration took.
+    first update; `updates` the number of policy updates the iteration took. `stop`, when given, is
+    asked before each minibatch (a CPU budget, Ctrl-C): True ends the epochs there, as the KL stop does.
     """
     n, K = data["chain"].shape[0], data["chain"].shape[1] - 1
     trained = trained_slice(K, cfg.trained_steps)
@@ -155,20 +188,27 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
     stats: dict = {"ratio_dev_before_update": 0.0, "epochs": 0, "updates": 0}
     logs = {k: [] for k in ("pg_loss", "v_loss", "kl_bc_update", "approx_kl", "clipfrac", "ratio_mean", "ratio_min",
                             "ratio_max")}
-    first, stop = True, False
+    first, stop_now = True, False
     for epoch in range(cfg.ppo_epochs):
         perm = torch.randperm(n, generator=generator)
         for start in range(0, n, cfg.minibatch_size):
+            if stop is not None and stop():
+                stop_now = True
+                break
             idx = perm[start:start + cfg.minibatch_size]
             optimizer.zero_grad(set_to_none=True)
             if update_policy:
                 parts = {"pg": 0.0, "kl": 0.0}
                 log_ratios = []
+                numels, tols = [], []
                 for sub in idx.split(micro):
                     w = len(sub) / len(idx)                   # micro-batch share of the minibatch mean
                     executed = data["executed"][sub] if "executed" in data else policy.config.n_action_steps
                     lp = rescore_chain(policy, make_batch(data["states"][sub]), chain[sub], grid,
                                        cfg.logprob_reduce, executed)                                 # [b, K']
+                    # KLs per element with averaged log-probs: from the summed log-ratio (`k3_kl`)
+                    numel = (step_numel(chain[sub].shape, executed).expand_as(lp)
+                             if cfg.logprob_reduce == "mean" else torch.ones_like(lp))               # [b, K']
                     log_ratio = lp - data["logp_old"][sub, trained]
                     ratio = log_ratio.exp()
                     a = adv[sub, None]
@@ -176,21 +216,28 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                     loss = pg
                     if cfg.kl_coef > 0:
                         ref = data["logp_ref"][sub, trained]
-                        loss = loss + cfg.kl_coef * kl_penalty(lp, ref).mean()
-                        parts["kl"] += w * float(k3_kl(ref - lp.detach()).mean())
+                        loss = loss + cfg.kl_coef * kl_penalty(lp, ref, numel).mean()
+                        parts["kl"] += w * float(k3_kl(ref - lp.detach(), numel).mean())
                     (w * loss).backward()
                     parts["pg"] += w * float(pg.detach())
                     log_ratios.append(log_ratio.detach())
+                    numels.append(numel)
+                    if first:
+                        tols.append(rescore_rounding(policy, chain[sub], grid, lp, numel))           # [b, K']
                 log_ratio = torch.cat(log_ratios)                                                    # [b, K']
                 ratio = log_ratio.exp()
                 if first:
-                    dev = float((ratio - 1).abs().max())
-                    stats["ratio_dev_before_update"] = dev
-                    if not dev <= cfg.ratio_tol:
-                        raise RuntimeError(f"PPO: on-policy ratio is not 1 before the first update (max |ratio − 1| "
-                                           f"= {dev:.2e} > {cfg.ratio_tol:g}): the stored chain is re-scored with a "
-                                           f"different velocity, σ or grid than the one that sampled it")
-                approx_kl = float(k3_kl(log_ratio).mean())
+                    devs = (ratio - 1).abs()                                                          # [b, K']
+                    stats["ratio_dev_before_update"] = float(devs.max())
+                    excess = devs - (cfg.ratio_tol + torch.cat(tols))
+                    if not bool((excess <= 0).all()):            # NaN fails too
+                        i = int(torch.nan_to_num(excess, nan=float("inf")).argmax())
+                        dev, tol = float(devs.flatten()[i]), float(cfg.ratio_tol + torch.cat(tols).flatten()[i])
+                        raise RuntimeError(f"PPO: on-policy ratio is not 1 before the first update (|ratio − 1| "
+                                           f"= {dev:.2e} > {tol:.2e}, --ratio-tol {cfg.ratio_tol:g} plus float "
+                                           f"rounding): the stored chain is re-scored with a different velocity, "
+                                           f"σ or grid than the one that sampled it")
+                approx_kl = float(k3_kl(log_ratio, torch.cat(numels)).mean())
                 logs["pg_loss"].append(parts["pg"])
                 if cfg.kl_coef > 0:
                     logs["kl_bc_update"].append(parts["kl"])
@@ -207,7 +254,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
                                            cfg.target_kl, cfg.lr / 100, cfg.lr * 10)
                 if too_far:                            # too far from the rollout policy: stop here
                     optimizer.zero_grad(set_to_none=True)
-                    stop = True
+                    stop_now = True
                     break
             first = False
             value = value_net(data["state_norm"][idx], data["progress"][idx])
@@ -224,7 +271,7 @@ def ppo_update(policy, value_net, optimizer: torch.optim.Optimizer, make_batch: 
             optimizer.step()
             stats["updates"] += int(update_policy)
         stats["epochs"] = epoch + 1
-        if stop:
+        if stop_now:
             break
     stats["lr"] = float(optimizer.param_groups[0]["lr"])
     if len(logs["approx_kl"]) > 1:      # measured on the minibatch after the iteration's first update

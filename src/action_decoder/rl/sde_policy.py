@@ -67,6 +67,17 @@ def reduce_step_log_probs(lp: Tensor, reduce: str, executed: Optional[int | Tens
     return total if reduce == "sum" else total / (keep.sum(-1) * lp.shape[-1])
 
 
+def step_numel(chain_shape, executed: Optional[int | Tensor] = None) -> Tensor:
+    """Elements each step's log-prob counts [B or 1, K] for chains of shape [B, K+1, H, D]: H·D,
+    and `executed`·D on the last step (`reduce_step_log_probs`). With `reduce="mean"` a per-step
+    log-prob times this is the summed one, the true density's."""
+    K, H, D = chain_shape[1] - 1, chain_shape[2], chain_shape[3]
+    rows = torch.full((1, K), float(H)) if executed is None else torch.as_tensor(
+        executed, dtype=torch.float32).reshape(-1, 1).clamp(max=H).expand(-1, K).clone()
+    rows[:, :-1] = H
+    return rows * D
+
+
 def sample_chain(policy: ActionDecoderPolicy, batch: Mapping, steps: int, generator: Optional[torch.Generator],
                  reduce: str = "sum", logprob: str = "full", noise: Optional[Tensor] = None,
                  executed: Optional[int] = None) -> SDEResult:
