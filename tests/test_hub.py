@@ -322,3 +322,14 @@ def test_saving_final_again_keeps_the_results_and_eval_files_of_the_same_weights
         next(policy.parameters()).add_(1.0)                     # other weights: their results do not apply
     save_final(tmp_path, policy, 200)
     assert read_results(final) == [] and not list(final.glob("eval_*"))
+
+
+def test_every_file_of_a_checkpoint_gets_the_umasks_mode(tmp_path):
+    old = os.umask(0o022)
+    try:
+        tiny_policy().save_pretrained(tmp_path / "c")
+    finally:
+        os.umask(old)
+    modes = {p.name: oct(p.stat().st_mode & 0o777) for p in (tmp_path / "c").iterdir()}
+    assert set(modes) == {"config.json", "model.safetensors", "README.md"}
+    assert set(modes.values()) == {"0o644"}, modes

@@ -500,7 +500,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         default the directory's name; returns the commit's url). The card keeps the measured results
         of these exact weights (from the checkpoint this policy was loaded from, or already in the
         directory); results of other weights are dropped."""
-        from safetensors.torch import save_file
+        from safetensors.torch import save as tensors_to_bytes
 
         if config is not None and config is not self.config:
             raise ValueError(f"config: the policy saves its own DecoderConfig (policy.config); got {type(config).__name__}")
@@ -511,8 +511,10 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         path.mkdir(parents=True, exist_ok=True)
         self.config.to_json(path / CONFIG_NAME)
         tensors = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        # Serialised in memory and written by Python, so the file gets the umask's mode like the others
+        # (safetensors' own save_file creates it 0600); a temporary name and a rename keep it atomic.
         tmp = path / (WEIGHTS_NAME + ".tmp")
-        save_file(tensors, str(tmp), metadata={"format": "pt", "library": "action_decoder"})
+        tmp.write_bytes(tensors_to_bytes(tensors, metadata={"format": "pt", "library": "action_decoder"}))
         tmp.replace(path / WEIGHTS_NAME)
         known = getattr(self, "_card_results", []) + model_card.read_results(path)
         results = []
