@@ -333,3 +333,18 @@ def test_every_file_of_a_checkpoint_gets_the_umasks_mode(tmp_path):
     modes = {p.name: oct(p.stat().st_mode & 0o777) for p in (tmp_path / "c").iterdir()}
     assert set(modes) == {"config.json", "model.safetensors", "README.md"}
     assert set(modes.values()) == {"0o644"}, modes
+
+
+@pytest.mark.parametrize("hub", [{"HF_HUB_OFFLINE": "1"}, {"HF_ENDPOINT": "http://127.0.0.1:9"}],
+                         ids=["offline", "unreachable"])
+def test_push_to_hub_without_a_hub_is_one_line(tmp_path, env, hub):
+    """No network: offline mode, or an endpoint where nothing listens (port 9, refused at once)."""
+    script = ("from action_decoder import ActionDecoderPolicy, DecoderConfig\n"
+              "policy = ActionDecoderPolicy(DecoderConfig(hidden_size=32, num_hidden_layers=1))\n"
+              "policy.push_to_hub('someone/policy', token='hf_not_a_token')\n")
+    res = subprocess.run([sys.executable, "-c", script], env={**env, "HF_HOME": str(tmp_path / "hf"), **hub},
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1
+    assert res.stderr.count('  File "') <= 2, res.stderr[-2000:]      # the caller's line and push_to_hub's raise
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("ValueError: push_to_hub: could not upload to the Hub repo 'someone/policy'"), last

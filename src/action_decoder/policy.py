@@ -526,6 +526,21 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             return self.push_to_hub(repo_id or path.name, **push_to_hub_kwargs)
         return None
 
+    def push_to_hub(self, repo_id: str, **kwargs) -> str:
+        """Upload `save_pretrained`'s files to the Hub repo `repo_id` (`PyTorchModelHubMixin.push_to_hub`'s
+        arguments: `token`, `private`, `branch`, `commit_message`...; returns the commit's url). A Hub that
+        cannot be reached or refuses the upload (offline, `HF_HUB_OFFLINE=1`, no token, no access) is
+        one ValueError line."""
+        try:
+            return super().push_to_hub(repo_id, **kwargs)
+        except TypeError:           # a wrong argument is the caller's, not the Hub's
+            raise
+        except Exception as err:    # offline, refused, unreachable: huggingface_hub and httpx raise many kinds
+            why = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise ValueError(f"push_to_hub: could not upload to the Hub repo {repo_id!r} ({type(err).__name__}: "
+                             f"{why}); check the connection, HF_HUB_OFFLINE and the token (huggingface-cli "
+                             f"login), or keep the directory save_pretrained writes") from None
+
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path: str | Path, map_location: str | torch.device = "cpu", *,
                         revision: Optional[str] = None, cache_dir: Optional[str | Path] = None,
