@@ -484,3 +484,17 @@ def test_torchrun_resume_continues_each_processes_own_streams(tmp_path, env):
                          env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert float(res.stdout.split("MAXDIFF")[1].split()[0]) == 0.0 and "SAMELOG True" in res.stdout, res.stdout
+
+
+def test_a_refused_run_leaves_no_directory_holding_only_its_lock(tmp_path, cli_main):
+    missing = tmp_path / "no_such_dataset"
+    out = tmp_path / "train_out"
+    res = cli_main(_ds_args(str(missing), out, "--steps", "2"))
+    assert res.returncode == 2 and not out.exists(), sorted(p.name for p in out.iterdir())
+    kept = tmp_path / "kept"                                   # a directory the user made stays, without a lock
+    kept.mkdir()
+    assert cli_main(_ds_args(str(missing), kept, "--steps", "2")).returncode == 2
+    assert kept.is_dir() and not any(kept.iterdir())
+    ft = tmp_path / "ft_out"
+    res = cli_main(["finetune", "--checkpoint", str(tmp_path / "no_such_checkpoint"), "--output-dir", str(ft)])
+    assert res.returncode == 2 and not ft.exists()
