@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -38,6 +39,8 @@ def test_train_save_load_eval_cycle(tmp_path, env):
                "--eval-episodes", "0"], env)
     assert res.returncode == 0, res.stderr
     assert (out / "final" / "config.json").is_file() and (out / "loss.png").is_file()
+    # Wall and CPU time, both named (the README quotes the CPU time).
+    assert re.search(r"^saved \S+final \(\d+ s of training, \d+ s CPU\)$", res.stdout, re.M), res.stdout[-500:]
     policy = ActionDecoderPolicy.from_pretrained(out / "final")
     averaged, raw = policy.state_dict(), ActionDecoderPolicy.from_pretrained(out / "checkpoints" / "step_0000020").state_dict()
     assert not torch.equal(averaged["model.action_in.weight"], raw["model.action_in.weight"]), \
