@@ -348,3 +348,25 @@ def test_push_to_hub_without_a_hub_is_one_line(tmp_path, env, hub):
     assert res.stderr.count('  File "') <= 2, res.stderr[-2000:]      # the caller's line and push_to_hub's raise
     last = res.stderr.strip().splitlines()[-1]
     assert last.startswith("ValueError: push_to_hub: could not upload to the Hub repo 'someone/policy'"), last
+
+
+def card_snippet(card: Path, checkpoint: Path) -> str:
+    """The card's "Use" code block, naming `checkpoint`."""
+    placeholder = "<this repo id or directory>"
+    code = card.read_text().split("## Use")[1].split("```python\n")[1].split("```")[0]
+    assert placeholder in code
+    return code.replace(placeholder, str(checkpoint))
+
+
+@pytest.mark.parametrize("kind", ["one task", "three tasks", "camera"])
+def test_the_cards_use_snippet_runs_as_written(tmp_path, kind):
+    torch.manual_seed(0)
+    extra = {"tasks": ["reach-v3", "push-v3", "door-open-v3"] if kind == "three tasks" else ["reach-v3"]}
+    cfg = DecoderConfig(decoder_type="flow_matching", state_dim=39, action_dim=4, action_chunk_size=8, hidden_size=32,
+                        num_hidden_layers=1, n_action_steps=8, num_inference_timesteps=2, extra=extra,
+                        context_dim=3 if kind == "three tasks" else None,
+                        cameras=("observation.images.corner2",) if kind == "camera" else (), image_size=32)
+    ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "c")
+    scope: dict = {}
+    exec(card_snippet(tmp_path / "c" / "README.md", tmp_path / "c"), scope)
+    assert list(scope["chunk"].shape) == [1, 8, 4]

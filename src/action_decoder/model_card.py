@@ -11,6 +11,7 @@ other weights (fine-tuned, retrained) never carries them over (`carried_results`
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 from pathlib import Path
@@ -126,10 +127,40 @@ def build_card(config: DecoderConfig, num_parameters: int, results: list[dict]) 
                       f"{config.action_chunk_size} actions.", "", "## Policy", "", *_policy_table(config, num_parameters),
                       "", "## Training", "", *_training_lines(train, tasks, config.extra.get("data") or {}),
                       "", "## Results", "", *_results_lines(results), "", "## Use", "", "```python",
-                      "from action_decoder import ActionDecoderPolicy", "",
-                      'policy = ActionDecoderPolicy.from_pretrained("<this repo id or directory>").eval()',
-                      'chunk = policy.predict_action_chunk({"state": state})   # [B, H, D], env units', "```", ""])
+                      *use_snippet(config), "```", ""])
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")
+
+
+REPO_PLACEHOLDER = "<this repo id or directory>"
+
+
+def use_snippet(config: DecoderConfig) -> list[str]:
+    """The card's "Use" code, lines that run as written once `REPO_PLACEHOLDER` names the checkpoint: a
+    batch of one zero state (and the inputs this policy needs: the task's one-hot token of a multi-task
+    policy, context tokens, camera frames) → one chunk."""
+    tasks = list(config.extra.get("tasks") or [])
+    multi = len(tasks) > 1 and config.context_dim == len(tasks)
+    lines = ["import torch", "", "from action_decoder import ActionDecoderPolicy"]
+    lines += ["from action_decoder.train import task_context"] if multi else []
+    lines += ["", f'policy = ActionDecoderPolicy.from_pretrained("{REPO_PLACEHOLDER}").eval()',
+              f'batch = {{"state": torch.zeros(1, {config.state_dim})}}   # [B, {config.state_dim}]: '
+              f'the robot state, env units']
+    if multi:
+        lines += [f"task = policy.config.extra[\"tasks\"].index({json.dumps(tasks[0])})   # one of the {len(tasks)} "
+                  f"trained tasks",
+                  f"batch.update(task_context(torch.tensor([task]), {len(tasks)}))   # its one-hot token, "
+                  f"context [B, 1, {len(tasks)}]"]
+    elif config.context_dim:
+        lines += [f'batch["context"] = torch.zeros(1, 1, {config.context_dim})   # [B, L, {config.context_dim}]: '
+                  f'your context tokens']
+    if config.cameras:
+        n, size = len(config.cameras), config.image_size
+        lines += [f'batch["images"] = torch.zeros(1, {n}, 3, {size}, {size}, dtype=torch.uint8)   # [B, {n}, 3, '
+                  f'{size}, {size}]: {", ".join(config.cameras)}']
+    if config.uses_vlm_cache:
+        lines += [f'# batch["vlm_key_values"] = the VLM\'s KV cache ({config.vlm_num_layers} layers) and '
+                  f'batch["attention_mask"]']
+    return lines + ['chunk = policy.predict_action_chunk(batch)   # [B, H, D], env units']
 
 
 def _policy_table(config: DecoderConfig, num_parameters: int) -> list[str]:
