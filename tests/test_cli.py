@@ -330,7 +330,16 @@ def test_dataset_training_and_errors_without_the_simulator(tmp_path, env):
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert ActionDecoderPolicy.from_pretrained(tmp_path / "out" / "final").config.extra["tasks"] == ["mine"]
+    # A policy of another robot needs no simulator to be told that eval runs Meta-World tasks...
     res = subprocess.run([sys.executable, str(script), "eval", "--checkpoint", str(tmp_path / "out" / "final")],
+                         env=env, capture_output=True, text=True, timeout=300)
+    _one_line(res, "closed-loop evaluation runs Meta-World tasks", "['mine']", "model card")
+    # ...and a Meta-World policy without the simulator is told how to install it.
+    from action_decoder import DecoderConfig
+
+    ActionDecoderPolicy(DecoderConfig(hidden_size=32, num_hidden_layers=1, extra={"tasks": ["reach-v3"]})) \
+        .save_pretrained(tmp_path / "mw")
+    res = subprocess.run([sys.executable, str(script), "eval", "--checkpoint", str(tmp_path / "mw")],
                          env=env, capture_output=True, text=True, timeout=300)
     _one_line(res, "gymnasium", "action-decoder[sim]")
 

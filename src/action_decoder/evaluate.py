@@ -121,19 +121,43 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     return policy_fn
 
 
-def run_eval(cfg: EvalConfig) -> dict:
-    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
-    from .envs.render import EpisodeCamera
+def check_simulator_policy(policy: ActionDecoderPolicy, checkpoint: str, task: Optional[str], command: str) -> None:
+    """Refuse, in one line, a closed-loop run (`eval`, `finetune`) of a policy the library's simulator cannot
+    run (`model_card.simulator_policy`): one trained on a LeRobot dataset of another robot is not told to
+    pick a Meta-World task it never had; it is told what it was trained on and where its measurements are."""
+    from .model_card import simulator_policy, trained_on
+    from .state_layout import METAWORLD_STATE_DIM
 
+    config = policy.config
+    dims = (config.state_dim, config.action_dim) == (METAWORLD_STATE_DIM, 4)
+    if simulator_policy(config) or (task is not None and dims):
+        return
+    what = {"eval": "closed-loop evaluation", "finetune": "RL fine-tuning"}[command]
+    instead = ("its held-out validation (val_loss, val_action_mse) is in its model card (README.md) and the run's "
+               "train_log.json; to act with it, run it in its own environment from Python (the card's Use section)"
+               if command == "eval" else
+               "fine-tune it with an RL loop of its own environment (policy.predict_action_chunk(batch, "
+               "sampler=\"sde\", return_logprob=True) gives chunks with log-probs)")
+    raise ValueError(f"--checkpoint: {what} runs Meta-World tasks ({METAWORLD_STATE_DIM}-d state, 4-d actions), and "
+                     f"{checkpoint} was trained on {trained_on(config)}: {instead}")
+
+
+def run_eval(cfg: EvalConfig) -> dict:
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=device).eval()
+    # Before the simulator is imported: a policy of another robot needs neither the sim nor a task.
+    check_simulator_policy(policy, cfg.checkpoint, cfg.task, "eval")
+
+    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
+    from .envs.render import EpisodeCamera
+
     if not 1 <= cfg.max_steps <= MAX_EPISODE_STEPS:
         raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
                          f"got {cfg.max_steps}")
     check_video_options(cfg)
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
-    policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=device).eval()
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "

@@ -517,11 +517,11 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         tmp.write_bytes(tensors_to_bytes(tensors, metadata={"format": "pt", "library": "action_decoder"}))
         tmp.replace(path / WEIGHTS_NAME)
         known = getattr(self, "_card_results", []) + model_card.read_results(path)
+        digest = model_card.weights_digest(tensors)
         results = []
-        if known:
-            for row in model_card.carried_results(known, model_card.weights_digest(tensors)):
-                results = model_card.merge_result(results, row)
-        model_card.write_card(path, self.config, sum(p.numel() for p in self.parameters()), results)
+        for row in model_card.carried_results(known, digest):
+            results = model_card.merge_result(results, row)
+        model_card.write_card(path, self.config, sum(p.numel() for p in self.parameters()), results, digest)
         if push_to_hub:
             return self.push_to_hub(repo_id or path.name, **push_to_hub_kwargs)
         return None

@@ -23,6 +23,7 @@ import torch
 from torch.utils.data import default_collate
 
 from .config import DecoderConfig
+from .model_card import weights_digest
 from .policy import ActionDecoderPolicy
 from .run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, _writing, existing_run, resume_checkpoint,
                       run_dir_lock, save_final, write_checkpoint)
@@ -676,10 +677,14 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     final = out / FINAL
     if main:
         trained = policy if ema is None else ema.module
-        save_final(out, trained, cfg.steps)
         log = {"config": asdict(cfg), "history": history}
         if val is not None:
             log["validation"] = validation_metrics(trained, val, len(tasks), device)
+            # Kept with the weights it measured, for the model card (`model_card.validation_of`).
+            trained.config.extra["validation"] = {**log["validation"],
+                                                  "weights_sha256": weights_digest(trained.state_dict())}
+        save_final(out, trained, cfg.steps)
+        if val is not None:
             print(f"validation on held-out episodes {log['validation']['episodes']}: "
                   f"val_loss={log['validation']['val_loss']:.4f} "
                   f"val_action_mse={log['validation']['val_action_mse']:.4f}", flush=True)
