@@ -510,3 +510,35 @@ def test_a_refused_run_leaves_no_directory_holding_only_its_lock(tmp_path, cli_m
     ft = tmp_path / "ft_out"
     res = cli_main(["finetune", "--checkpoint", str(tmp_path / "no_such_checkpoint"), "--output-dir", str(ft)])
     assert res.returncode == 2 and not ft.exists()
+
+
+def _saved_policy(path, decoder="flow_matching", state_dim=39, action_dim=4, tasks=("reach-v3",)):
+    from action_decoder import DecoderConfig
+
+    cfg = DecoderConfig(decoder_type=decoder, state_dim=state_dim, action_dim=action_dim, hidden_size=32,
+                        num_hidden_layers=1, context_dim=len(tasks) if len(tasks) > 1 else None,
+                        extra={"tasks": list(tasks), "train": {"dataset": "data/blocks"}})
+    ActionDecoderPolicy(cfg).save_pretrained(path)
+    return str(path)
+
+
+@pytest.mark.parametrize("tasks", [("push the block",), ("push the block", "lift the cube")])
+def test_finetune_of_a_policy_of_another_robot_is_one_line_without_a_circle(tmp_path, cli_main, tasks):
+    ckpt = _saved_policy(tmp_path / "blocks", state_dim=6, action_dim=2, tasks=tasks)
+    for more in ([], ["--task", "metaworld/push"]):           # naming a Meta-World task does not send it elsewhere
+        line = _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o"), *more]),
+                         "RL fine-tuning runs Meta-World tasks", "push the block", "6-d state")
+        assert "--task" not in line and "not among" not in line
+    if len(tasks) > 1:      # Meta-World's widths, other tasks: --task cannot give a multi-task policy its token
+        ckpt = _saved_policy(tmp_path / "mw_widths", tasks=tasks)
+        line = _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o"),
+                                   "--task", "metaworld/push"]), "RL fine-tuning runs Meta-World tasks")
+        assert "not among" not in line
+
+
+def test_finetune_of_a_ddpm_policy_reaches_its_refusal_whatever_its_tasks(tmp_path, cli_main):
+    for name, kw in (("other_robot", {"state_dim": 6, "action_dim": 2, "tasks": ("push the block",)}),
+                     ("multi_task", {"tasks": ("reach-v3", "push-v3")})):
+        ckpt = _saved_policy(tmp_path / name, decoder="DDPM", **kw)
+        _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o")]),
+                  "flow_matching or mean_flow", "decoder_type='DDPM'")

@@ -130,7 +130,9 @@ def check_simulator_policy(policy: ActionDecoderPolicy, checkpoint: str, task: O
 
     config = policy.config
     dims = (config.state_dim, config.action_dim) == (METAWORLD_STATE_DIM, 4)
-    if simulator_policy(config) or (task is not None and dims):
+    # With --task, a single-task policy of Meta-World's widths may be run there; a multi-task one needs
+    # its own tasks' tokens, which a Meta-World task does not give.
+    if simulator_policy(config) or (task is not None and dims and len(config.extra.get("tasks") or []) <= 1):
         return
     what = {"eval": "closed-loop evaluation", "finetune": "RL fine-tuning"}[command]
     instead = ("its held-out validation (val_loss, val_action_mse) is in its model card (README.md) and the run's "

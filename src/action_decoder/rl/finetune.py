@@ -20,7 +20,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from ..evaluate import make_policy_fn
+from ..evaluate import check_simulator_policy, make_policy_fn
 from ..model_card import weights_digest
 from ..policy import ActionDecoderPolicy
 from ..run_dir import (CKPT_DIR, _rng_state, _set_rng_state, existing_run, last_checkpoint, load_state, run_dir_lock,
@@ -344,12 +344,14 @@ def _finetune(cfg: FinetuneConfig) -> Path:
     out = Path(cfg.output_dir)
     bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
     trained = list(bc.config.extra.get("tasks") or [])
-    task, task_index = _resolve_task(cfg, trained)
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
+    # The decoder (DDPM refused), then the simulator, then the task: each refusal is the one that applies.
     policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule, {"finetune": asdict(cfg)},
                              squash=cfg.algo == "sac")
     reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
+    check_simulator_policy(bc, cfg.checkpoint, cfg.task, "finetune")
+    task, task_index = _resolve_task(cfg, trained)
     state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
     sigma_params = list(policy.sigma.parameters())
     groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
