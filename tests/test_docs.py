@@ -25,6 +25,18 @@ def _mkdocs_build(root: Path, site: Path) -> subprocess.CompletedProcess:
                           cwd=root, env=env, capture_output=True, text=True, timeout=300)
 
 
+def _described_entries(html: str) -> dict[str, bool]:
+    """Each rendered API entry's id → whether it has text of its own (a paragraph in its contents before
+    its first member)."""
+    entries = {}
+    for heading in re.finditer(r'<h\d id="([^"]+)" class="doc doc-heading">', html):
+        rest = html[heading.end():]
+        start = rest.find('<div class="doc doc-contents')
+        member = re.search(r'<div class="doc doc-(object|children)', rest[start + 1:])
+        entries[heading[1]] = "<p>" in rest[start:start + 1 + (member.start() if member else len(rest))]
+    return entries
+
+
 @pytest.fixture(scope="module")
 def mkdocs_available():
     if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None:
@@ -49,6 +61,17 @@ def test_mkdocs_build_strict_passes_and_renders_every_public_name(mkdocs_availab
                                                             "config.DecoderConfig")]
     missing = [name for page, name in anchors if f'id="{name}"' not in html[page]]
     assert not missing, f"rendered without a documented entry: {missing}"
+    # Every entry of the policy page says what it is: DecoderConfig's fields above all (attribute
+    # docstrings; `#` comments never reach the reference).
+    from dataclasses import fields
+
+    from action_decoder import DecoderConfig
+
+    described = _described_entries(html["policy"])
+    config_fields = [f"action_decoder.config.DecoderConfig.{f.name}" for f in fields(DecoderConfig)]
+    assert all(name in described for name in config_fields), [n for n in config_fields if n not in described]
+    bare = [name for name, has_text in described.items() if not has_text]
+    assert not bare, f"rendered without a description: {bare}"
     assert set(action_decoder.rl.__all__) == {"FinetuneConfig", "finetune"}
 
 

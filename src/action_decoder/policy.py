@@ -42,12 +42,19 @@ class PolicyOutput:
     float32) and the SDE `chain` [B, K+1, H, D] (normalised) with its `grid` [K+1]."""
 
     loss: Optional[Tensor] = None
+    """Training: the scalar loss to back-propagate."""
     actions: Optional[Tensor] = None
+    """Sampling: [B, H, D] actions in environment units."""
     log_prob: Optional[Tensor] = None
+    """Sampling with log-probs: [B] density of the normalised chunk (the sum of `step_log_probs`)."""
     step_log_probs: Optional[Tensor] = None
+    """Sampling with log-probs: [B, K] the log-density of each SDE step."""
     chain: Optional[Tensor] = None
+    """SDE sampling with log-probs: [B, K+1, H, D] the chain's states, normalised, from noise to chunk."""
     grid: Optional[Tensor] = None
+    """SDE sampling with log-probs: [K+1] the chain's times, from 0 (noise) to 1 (data)."""
     metrics: dict = field(default_factory=dict)
+    """Training: values to log (floats)."""
 
 
 @dataclass
@@ -77,11 +84,14 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         if not isinstance(config, DecoderConfig):
             raise ValueError(f"config: expected a DecoderConfig, got {type(config).__name__}")
         self.config = config
+        """The `DecoderConfig` (saved as config.json)."""
         self.model = ActionExpert(config, load_pretrained)
+        """The Action Expert network (`expert.ActionExpert`)."""
         self.normalizers = make_normalizers(config.state_dim, config.action_dim,
                                             config.normalization_mode, stats, config.action_constant_below)
-        # The noise schedule is a submodule so that a learnable σ is a policy parameter.
+        """"state" and "actions" normalisers (`normalize.Normalizer`), their statistics saved with the weights."""
         self.sigma = make_sigma(config)
+        """The SDE's noise schedule σ(t), a submodule so that a learnable σ is a policy parameter."""
         self._queue: deque = deque()
         self._warned_proxy = self._warned_steps = False
 
@@ -237,6 +247,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
+        """The decoder's training loss on `batch` ("state", "actions" [B, H, D] in environment units, and
+        its conditioning); times and noise drawn from `generator`. `PolicyOutput.loss` and `.metrics`."""
         self._validate(batch, need_actions=True)
         if generator is not None and not isinstance(generator, torch.Generator):
             raise ValueError(f"generator: the loss draws its times and noise from one torch.Generator (or None), "
