@@ -542,3 +542,37 @@ def test_finetune_of_a_ddpm_policy_reaches_its_refusal_whatever_its_tasks(tmp_pa
         ckpt = _saved_policy(tmp_path / name, decoder="DDPM", **kw)
         _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o")]),
                   "flow_matching or mean_flow", "decoder_type='DDPM'")
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "finetune"])
+def test_help_gives_each_option_one_line_without_measurements(command):
+    """`--help`: per option one line saying what it does and its default; measurements live in the
+    benchmark pages."""
+    from dataclasses import fields
+
+    from action_decoder.evaluate import EvalConfig
+    from action_decoder.rl import FinetuneConfig
+    from action_decoder.train import TrainConfig
+
+    res = subprocess.run([sys.executable, "-m", "action_decoder.cli", command, "--help"], capture_output=True,
+                         text=True, timeout=120, env={**os.environ, "COLUMNS": "400"})
+    assert res.returncode == 0, res.stderr
+    rows = [line.strip("│ ").rstrip() for line in res.stdout.splitlines() if line.startswith("│")]
+    options, current = {}, None
+    for row in rows:
+        if row.startswith("-"):
+            current = row.split()[0].rstrip(",")
+            options[current] = [row]
+        elif current is not None:
+            options[current].append(row)
+    config = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig}[command]
+    flags = {f"--{f.name.replace('_', '-')}" for f in fields(config)}
+    assert flags <= set(options), flags - set(options)
+    for flag in flags:
+        text = " ".join(options[flag])
+        help_lines = [r for r in options[flag] if not r.startswith("-")] or [options[flag][0]]
+        # The flag and its metavar may take a line of their own; the help itself is one line.
+        assert len(help_lines) == 1, (flag, options[flag])
+        described = re.sub(r"\((default|required)[^)]*\)", "", help_lines[0].split("  ")[-1]).strip()
+        assert len(described) > 8 and not described.startswith("-"), (flag, text)
+        assert "%" not in text and "→" not in text, (flag, text)
