@@ -76,12 +76,17 @@ def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):
     (["train", "--demo-noise", "1.5"], "--demo-noise"),
     (["train", "--dataset", "/nonexistent/ds", "--demo-noise", "0.2"], "--demo-noise"),
     (["eval", "--checkpoint", "CKPT", "--sampler", "sde"], "sampler"),
+    (["train", "--dataset", "/nonexistent/ds"], "--dataset: /nonexistent/ds does not exist; expected a LeRobot dataset"),
+    (["train", "--dataset", "FILE"], "is a file; expected a LeRobot dataset directory"),
 ])
 def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):
     if "CKPT" in args:   # a DDPM checkpoint cannot be sampled with the SDE
         from action_decoder import DecoderConfig
         ActionDecoderPolicy(DecoderConfig(state_dim=39, extra={"tasks": ["reach-v3"]})).save_pretrained(tmp_path / "c")
         args = [str(tmp_path / "c") if a == "CKPT" else a for a in args]
+    if "FILE" in args:
+        (tmp_path / "data.parquet").write_bytes(b"PAR1")
+        args = [str(tmp_path / "data.parquet") if a == "FILE" else a for a in args]
     res = run(args, env)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()

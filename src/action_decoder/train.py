@@ -558,6 +558,10 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     out = Path(cfg.output_dir)
     main = rank == 0
     shift = augment_shift(cfg)
+    if cfg.dataset is not None:
+        from .data.lerobot_format import check_dataset_dir
+
+        check_dataset_dir(cfg.dataset, "--dataset")
     resumed = _resume(cfg, out, device, main)
     ds, tasks, val = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks,
