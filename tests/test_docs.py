@@ -216,3 +216,13 @@ def test_real_time_chunking_guide_loop_runs_as_written(tmp_path):
         os.chdir(cwd)
     s, d, chunk, queue = scope["s"], scope["d"], scope["chunk"], scope["queue"]
     assert len(queue) == s + d and all(torch.equal(a, b) for a, b in zip(queue, chunk[0, : s + d]))
+
+
+def test_every_dataset_a_guide_records_is_used():
+    """A `record --output-dir DIR` in a page's commands is followed by a command that reads DIR."""
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs" / "guides").glob("*.md"))]:
+        commands = "\n".join(re.findall(r"```bash\n(.*?)```", page.read_text(), re.S))
+        for match in re.finditer(r"action-decoder record .*?--output-dir (\S+)", commands):
+            later = commands[match.end():]
+            assert f"--dataset {match[1]}" in later or f"root={match[1]}" in later, \
+                f"{page.name}: records {match[1]} and never uses it"
