@@ -370,3 +370,20 @@ def test_the_cards_use_snippet_runs_as_written(tmp_path, kind):
     scope: dict = {}
     exec(card_snippet(tmp_path / "c" / "README.md", tmp_path / "c"), scope)
     assert list(scope["chunk"].shape) == [1, 8, 4]
+
+
+def test_a_runs_last_pointer_is_followed_and_another_file_is_one_line(tmp_path, monkeypatch):
+    root = tmp_path / "run" / "checkpoints"
+    tiny_policy().save_pretrained(root / "step_0000020")
+    (root / "last").write_text("step_0000020")
+    loaded = ActionDecoderPolicy.from_pretrained(root / "last")
+    assert all(torch.equal(loaded.state_dict()[k], v) for k, v in tiny_policy().state_dict().items())
+    # eval follows it too: the summary and the card row go into the step directory.
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate([True, False]))
+    summary = run_eval(EvalConfig(checkpoint=str(root / "last"), episodes=2))
+    assert summary["checkpoint"] == str(root / "step_0000020")
+    assert [r["success_rate"] for r in read_results(root / "step_0000020")] == [0.5]
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ValueError, match=r"notes.txt is a file; expected a directory written by save_pretrained"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "notes.txt")

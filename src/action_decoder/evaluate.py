@@ -9,14 +9,14 @@ import os
 import shutil
 import sys
 import tempfile
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
 import torch
 
-from .policy import ActionDecoderPolicy
+from .policy import ActionDecoderPolicy, follow_last
 from .tracking import log_evaluation, require_wandb
 from .train import task_context
 
@@ -142,6 +142,8 @@ def run_eval(cfg: EvalConfig) -> dict:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
     device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    if Path(cfg.checkpoint).expanduser().is_file():      # a run's checkpoints/last: its step_N directory
+        cfg = replace(cfg, checkpoint=str(follow_last(cfg.checkpoint)))
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=device).eval()
     # Before the simulator is imported: a policy of another robot needs neither the sim nor a task.
     check_simulator_policy(policy, cfg.checkpoint, cfg.task, "eval")

@@ -594,9 +594,24 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 HUB_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 
 
-def _checkpoint_dir(name: str | Path, **hub) -> Path:
-    """A local checkpoint directory, or the snapshot of the Hub repo `name` names (`owner/name`)."""
+def follow_last(name: str | Path) -> Path:
+    """`name` as a path, or the `step_N` directory a run's `checkpoints/last` pointer file names."""
     path = Path(name).expanduser()
+    if path.is_file() and path.name == "last":
+        target = path.parent / path.read_text(errors="replace").strip()
+        if target.name.startswith("step_") and target.is_dir():
+            return target
+    return path
+
+
+def _checkpoint_dir(name: str | Path, **hub) -> Path:
+    """A local checkpoint directory, or the snapshot of the Hub repo `name` names (`owner/name`). A run's
+    `checkpoints/last` pointer (a file naming the newest `step_N`) is followed to that directory; another
+    file is refused in one line."""
+    path = follow_last(name)
+    if path.is_file():
+        raise ValueError(f"checkpoint: {path} is a file; expected a directory written by save_pretrained "
+                         f"({CONFIG_NAME} + {WEIGHTS_NAME}), e.g. a run's final/ or checkpoints/step_N")
     if path.exists() or not HUB_REPO_ID.match(str(name)):
         return path
     from huggingface_hub import snapshot_download
