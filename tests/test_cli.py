@@ -581,3 +581,18 @@ def test_help_gives_each_option_one_line_without_measurements(command):
         described = re.sub(r"\((default|required)[^)]*\)", "", help_lines[0].split("  ")[-1]).strip()
         assert len(described) > 8 and not described.startswith("-"), (flag, text)
         assert "%" not in text and "→" not in text, (flag, text)
+
+
+def test_record_into_a_read_only_place_names_output_dir_before_recording(tmp_path, cli_main):
+    import tempfile
+
+    try:                                        # /sys refuses new files even to root (sysfs)
+        tempfile.TemporaryFile(dir="/sys").close()
+        pytest.skip("/sys is writable here")
+    except OSError:
+        pass
+    for out in ("/sys/action_decoder_demos", str(tmp_path / "a_file" / "demos")):
+        (tmp_path / "a_file").write_text("x")
+        res = cli_main(["record", "--task", "metaworld/reach", "--demos", "1", "--output-dir", out])
+        _one_line(res, "--output-dir: cannot write the dataset to", out)
+        assert "recorded" not in res.stdout
