@@ -82,7 +82,8 @@ def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):
 def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):
     if "CKPT" in args:   # a DDPM checkpoint cannot be sampled with the SDE
         from action_decoder import DecoderConfig
-        ActionDecoderPolicy(DecoderConfig(state_dim=39, extra={"tasks": ["reach-v3"]})).save_pretrained(tmp_path / "c")
+        ActionDecoderPolicy(DecoderConfig(decoder_type="DDPM", state_dim=39, extra={"tasks": ["reach-v3"]})) \
+            .save_pretrained(tmp_path / "c")
         args = [str(tmp_path / "c") if a == "CKPT" else a for a in args]
     if "FILE" in args:
         (tmp_path / "data.parquet").write_bytes(b"PAR1")

@@ -56,6 +56,8 @@ OLDEST_FORMAT_VERSION = 2
 # (churn; the ODE: 0.00, 0.14, 0.22, 0.34) and 3.30, 0.55, 0.37, 0.38 (explore); on two modes at
 # ±1 the energy distance at K = 3 is 0.060 (churn) and 0.022 (explore) against the ODE's 0.067.
 SDE_MIN_STEPS = 3
+GO1_DEFAULT_DECODER = "DDPM"
+"""The decoder of a GO-1 Base config that names none (`DecoderConfig.from_go1`)."""
 
 
 @dataclass
@@ -63,13 +65,16 @@ class DecoderConfig:
     """Everything that defines an action decoder: which decoder, its sampler, and the network.
 
     Field names of the first block follow GO-1's Base config so that GO-1 configs load as-is
-    (`from_go1`). `flow_sde_s_churn` is the noise level `s` of every SDE mode: churn
+    (`from_go1`); the defaults are this library's (flow matching, as `action-decoder train`), GO-1's
+    Base config defaults to DDPM. `flow_sde_s_churn` is the noise level `s` of every SDE mode: churn
     `s·√(ε/(t+ε))`, fixed `s`, explore `s·√((1−t)/t)`.
     """
 
     # --- decoder (GO-1 Base config names) ---
-    decoder_type: str = "DDPM"
-    """Which decoder: "DDPM", "flow_matching" or "mean_flow"."""
+    decoder_type: str = "flow_matching"
+    """Which decoder: "DDPM", "flow_matching" or "mean_flow". The default is the CLI's (`train --decoder`);
+    a checkpoint keeps the type it was trained with (config.json stores every field), and `from_go1`
+    keeps GO-1's default, DDPM, for a GO-1 config that names none."""
     num_train_timesteps: int = 1000
     """DDPM: diffusion steps of the training noise schedule."""
     num_inference_timesteps: int = 10
@@ -423,6 +428,7 @@ class DecoderConfig:
             for name in theirs:
                 if ours not in values and name in src:
                     values[ours] = src[name]
+        values.setdefault("decoder_type", GO1_DEFAULT_DECODER)
         values.update(overrides)
         return cls(**values)
 
