@@ -21,11 +21,28 @@ TINY = ["--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hi
         "--num-layers", "1", "--no-progress", "--log-every", "5"]
 
 
-def run(args, env, timeout=300, **kw):
-    """The CLI as a user runs it, from the test's own directory (default outputs land there)."""
-    kw.setdefault("cwd", Path(env["ACTION_DECODER_CACHE"]).parent)
-    return subprocess.run([sys.executable, "-m", "action_decoder.cli", *args], env=env, capture_output=True,
-                          text=True, timeout=timeout, **kw)
+def run(args, env, cwd=None):
+    """The CLI as a user runs it (`cli.main`, its exit status and output), from the test's own directory
+    (default outputs land there) with `env`'s cache. In this process: a new interpreter costs seconds of
+    imports per call; the tests that need one (a kill, torchrun, no simulator, stderr not a terminal)
+    start their own."""
+    import contextlib
+    import io
+
+    from action_decoder import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    saved_env, saved_cwd = {k: os.environ.get(k) for k in ("ACTION_DECODER_CACHE", "OMP_NUM_THREADS")}, os.getcwd()
+    os.environ.update({k: env[k] for k in saved_env})
+    os.chdir(cwd or Path(env["ACTION_DECODER_CACHE"]).parent)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = cli.main(list(args))
+    finally:
+        os.chdir(saved_cwd)
+        for k, v in saved_env.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
 
 
 @pytest.fixture
@@ -33,7 +50,7 @@ def env(tmp_path):
     return {**os.environ, "ACTION_DECODER_CACHE": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
 
 
-def test_train_save_load_eval_cycle(tmp_path, env):
+def test_train_save_load_eval_cycle(tmp_path, env, cli_main):
     out = tmp_path / "run"
     res = run(["train", *TINY, "--decoder", "flow_matching", "--steps", "20", "--output-dir", str(out),
                "--eval-episodes", "0"], env)
@@ -47,8 +64,8 @@ def test_train_save_load_eval_cycle(tmp_path, env):
         "final/ should hold the weight average, not the raw weights"
     assert policy.config.decoder_type == "flow_matching" and policy.config.extra["tasks"] == ["reach-v3"]
     assert policy.config.state_layout == "metaworld", "Meta-World tasks train with relative positions"
-    res = run(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
-               "--sampler", "sde", "--steps", "3"], env)
+    res = cli_main(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
+                    "--sampler", "sde", "--steps", "3"])
     assert res.returncode == 0, res.stderr
     last = res.stdout.strip().splitlines()[-1]
     assert last.startswith("success_rate=") and 0.0 <= float(last.split("=")[1]) <= 1.0
@@ -79,7 +96,7 @@ def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):
     (["train", "--dataset", "/nonexistent/ds"], "--dataset: /nonexistent/ds does not exist; expected a LeRobot dataset"),
     (["train", "--dataset", "FILE"], "is a file; expected a LeRobot dataset directory"),
 ])
-def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):
+def test_bad_input_gives_one_clear_line(tmp_path, cli_main, args, message):
     if "CKPT" in args:   # a DDPM checkpoint cannot be sampled with the SDE
         from action_decoder import DecoderConfig
         ActionDecoderPolicy(DecoderConfig(decoder_type="DDPM", state_dim=39, extra={"tasks": ["reach-v3"]})) \
@@ -88,7 +105,9 @@ def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):
     if "FILE" in args:
         (tmp_path / "data.parquet").write_bytes(b"PAR1")
         args = [str(tmp_path / "data.parquet") if a == "FILE" else a for a in args]
-    res = run(args, env)
+    if args[0] == "train":
+        args = [*args, "--output-dir", str(tmp_path / "out")]
+    res = cli_main(args)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("action-decoder: error:") and message in lines[0], res.stderr
@@ -112,7 +131,7 @@ def test_corrupted_checkpoint_and_nan_dataset(tmp_path, env):
 
 
 def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
-    common = ["train", *TINY, "--decoder", "mean_flow", "--steps", "120", "--checkpoint-every", "10",
+    common = ["train", *TINY, "--decoder", "mean_flow", "--steps", "40", "--checkpoint-every", "10",
               "--log-every", "4", "--eval-episodes", "0", "--hidden-size", "64", "--num-layers", "2",
               "--batch-size", "64"]
     straight = run([*common, "--output-dir", str(tmp_path / "a")], env)
@@ -127,7 +146,7 @@ def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     proc.wait()
     assert not (out / "final").exists(), "the run finished before it could be killed"
     killed_at = (out / "checkpoints" / "last").read_text()
-    assert killed_at != "step_0000120"
+    assert killed_at != "step_0000040"
     # Without --resume the directory is protected; with it the run continues and ends where the
     # uninterrupted run ended, bit for bit (same optimizer, data order and noise).
     assert run([*common, "--output-dir", str(out)], env).returncode == 2
@@ -138,11 +157,11 @@ def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     b = ActionDecoderPolicy.from_pretrained(out / "final").state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     log = json.loads((out / "train_log.json").read_text())["history"]
-    assert [h["step"] for h in log] == list(range(4, 121, 4))
+    assert [h["step"] for h in log] == list(range(4, 41, 4))
     # A log row whose window spans the checkpoint the run resumed from is the uninterrupted run's row.
     assert log == json.loads((tmp_path / "a" / "train_log.json").read_text())["history"]
     from action_decoder.train import lr_factor
-    assert [h["lr"] for h in log[:2]] == pytest.approx([1e-3 * lr_factor(3, 100, 120), 1e-3 * lr_factor(7, 100, 120)])
+    assert [h["lr"] for h in log[:2]] == pytest.approx([1e-3 * lr_factor(3, 100, 40), 1e-3 * lr_factor(7, 100, 40)])
 
 
 @pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
@@ -551,7 +570,7 @@ def test_finetune_of_a_ddpm_policy_reaches_its_refusal_whatever_its_tasks(tmp_pa
 
 
 @pytest.mark.parametrize("command", ["train", "eval", "finetune"])
-def test_help_gives_each_option_one_line_without_measurements(command):
+def test_help_gives_each_option_one_line_without_measurements(command, capsys, monkeypatch):
     """`--help`: per option one line saying what it does and its default; measurements live in the
     benchmark pages."""
     from dataclasses import fields
@@ -560,10 +579,15 @@ def test_help_gives_each_option_one_line_without_measurements(command):
     from action_decoder.rl import FinetuneConfig
     from action_decoder.train import TrainConfig
 
-    res = subprocess.run([sys.executable, "-m", "action_decoder.cli", command, "--help"], capture_output=True,
-                         text=True, timeout=120, env={**os.environ, "COLUMNS": "400"})
-    assert res.returncode == 0, res.stderr
-    rows = [line.strip("│ ").rstrip() for line in res.stdout.splitlines() if line.startswith("│")]
+    from action_decoder import cli
+
+    monkeypatch.setenv("COLUMNS", "400")
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([command, "--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    body = text[text.index("--help"):]                     # the options, boxed (a terminal) or not
+    rows = [line.strip("│ ").rstrip() for line in body.splitlines() if line.strip("│ ─-╰╯╭╮")]
     options, current = {}, None
     for row in rows:
         if row.startswith("-"):
