@@ -55,13 +55,17 @@ def env(tmp_path):
             "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")])}
 
 
-def test_trained_checkpoint_has_a_card_with_the_printed_success(tmp_path, env):
+def test_trained_checkpoint_has_a_card_with_the_printed_success(tmp_path, monkeypatch, capsys):
+    from action_decoder import cli as main_cli       # in this process: no interpreter start-up per call
+
     out = tmp_path / "run"
-    res = cli(["train", "--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hidden-size", "32",
-               "--num-layers", "1", "--no-progress", "--steps", "20", "--eval-episodes", "2",
-               "--output-dir", str(out)], env, tmp_path)
-    assert res.returncode == 0, res.stderr
-    printed = float(re.findall(r"^success_rate=([0-9.]+)$", res.stdout, re.M)[-1])
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    code = main_cli.main(["train", "--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hidden-size",
+                          "32", "--num-layers", "1", "--no-progress", "--steps", "20", "--eval-episodes", "2",
+                          "--output-dir", str(out)])
+    res = capsys.readouterr()
+    assert code == 0, res.err
+    printed = float(re.findall(r"^success_rate=([0-9.]+)$", res.out, re.M)[-1])
     card = out / "final" / "README.md"
     meta = front_matter(card)
     assert "library_name: action-decoder" in meta and "pipeline_tag: robotics" in meta
