@@ -233,3 +233,10 @@ def test_video_fps_out_of_range_is_refused_before_any_episode(checkpoint, fps, m
 
 def test_device_auto_evaluates_on_what_the_machine_has(checkpoint):
     assert run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2, device="auto"))["success_rate"] == 0.5
+
+
+def test_the_episode_cap_eval_checks_before_importing_the_simulator_is_meta_worlds():
+    from action_decoder.envs import MAX_EPISODE_STEPS
+    from action_decoder.evaluate import EPISODE_CAP
+
+    assert EPISODE_CAP == MAX_EPISODE_STEPS

@@ -137,10 +137,17 @@ def check_simulator_policy(policy: ActionDecoderPolicy, checkpoint: str, task: O
                      f"{checkpoint} was trained on {trained_on(config)}: {instead}")
 
 
+EPISODE_CAP = 500
+"""Meta-World's episode cap (`envs.MAX_EPISODE_STEPS`, here without importing the simulator)."""
+
+
 def run_eval(cfg: EvalConfig) -> dict:
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
+    if not 1 <= cfg.max_steps <= EPISODE_CAP:
+        raise ValueError(f"--max-steps: expected 1..{EPISODE_CAP} (Meta-World's episode cap), got {cfg.max_steps}")
+    check_video_options(cfg)
     device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
     if Path(cfg.checkpoint).expanduser().is_file():      # a run's checkpoints/last: its step_N directory
         cfg = replace(cfg, checkpoint=str(follow_last(cfg.checkpoint)))
@@ -148,13 +155,9 @@ def run_eval(cfg: EvalConfig) -> dict:
     # Before the simulator is imported: a policy of another robot needs neither the sim nor a task.
     check_simulator_policy(policy, cfg.checkpoint, cfg.task, "eval")
 
-    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
+    from .envs import canonical_task, evaluate, resolve_tasks
     from .envs.render import EpisodeCamera
 
-    if not 1 <= cfg.max_steps <= MAX_EPISODE_STEPS:
-        raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
-                         f"got {cfg.max_steps}")
-    check_video_options(cfg)
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "
