@@ -40,7 +40,8 @@ CONDITIONS = ("state", "image")
 CLI = [sys.executable, "-m", "action_decoder.cli"]
 NOTES = "<!-- notes: kept when the table above is rebuilt -->"
 GAP_TARGET = 15.0          # points: image success on the easy tasks within this of state success
-TRAINED = re.compile(r"\((\d+(?:\.\d+)?) s of training\)")
+TRAINED = re.compile(r"\((\d+(?:\.\d+)?) s of training[,)]")
+"""The wall time of the trainer's `saved` line ("(W s of training, C s CPU)"; older logs: "(W s of training)")."""
 
 
 def short_name(task: str) -> str:

@@ -113,3 +113,5 @@ def test_a_finished_run_is_reused_whichever_way_the_task_is_spelled(tmp_path, mo
         r = cameras.run_one(task, 0, "flow_matching", "state", args)
         assert (r["task"], r["success"], r["train_s"], r["steps"]) == ("drawer-open-v3", 0.7, 123.0, 2)
         assert r["latency_ms"] > 0 and "encoder_ms" not in r
+    (final.parent / "log.txt").write_text("saved final (125 s of training, 98 s CPU)\n")   # the trainer's line now
+    assert cameras.run_one("metaworld/drawer-open", 0, "flow_matching", "state", args)["train_s"] == 125.0

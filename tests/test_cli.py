@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -20,11 +21,28 @@ TINY = ["--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hi
         "--num-layers", "1", "--no-progress", "--log-every", "5"]
 
 
-def run(args, env, timeout=300, **kw):
-    """The CLI as a user runs it, from the test's own directory (default outputs land there)."""
-    kw.setdefault("cwd", Path(env["ACTION_DECODER_CACHE"]).parent)
-    return subprocess.run([sys.executable, "-m", "action_decoder.cli", *args], env=env, capture_output=True,
-                          text=True, timeout=timeout, **kw)
+def run(args, env, cwd=None):
+    """The CLI as a user runs it (`cli.main`, its exit status and output), from the test's own directory
+    (default outputs land there) with `env`'s cache. In this process: a new interpreter costs seconds of
+    imports per call; the tests that need one (a kill, torchrun, no simulator, stderr not a terminal)
+    start their own."""
+    import contextlib
+    import io
+
+    from action_decoder import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    saved_env, saved_cwd = {k: os.environ.get(k) for k in ("ACTION_DECODER_CACHE", "OMP_NUM_THREADS")}, os.getcwd()
+    os.environ.update({k: env[k] for k in saved_env})
+    os.chdir(cwd or Path(env["ACTION_DECODER_CACHE"]).parent)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = cli.main(list(args))
+    finally:
+        os.chdir(saved_cwd)
+        for k, v in saved_env.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
 
 
 @pytest.fixture
@@ -32,20 +50,22 @@ def env(tmp_path):
     return {**os.environ, "ACTION_DECODER_CACHE": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
 
 
-def test_train_save_load_eval_cycle(tmp_path, env):
+def test_train_save_load_eval_cycle(tmp_path, env, cli_main):
     out = tmp_path / "run"
     res = run(["train", *TINY, "--decoder", "flow_matching", "--steps", "20", "--output-dir", str(out),
                "--eval-episodes", "0"], env)
     assert res.returncode == 0, res.stderr
     assert (out / "final" / "config.json").is_file() and (out / "loss.png").is_file()
+    # Wall and CPU time, both named (the README quotes the CPU time).
+    assert re.search(r"^saved \S+final \(\d+ s of training, \d+ s CPU\)$", res.stdout, re.M), res.stdout[-500:]
     policy = ActionDecoderPolicy.from_pretrained(out / "final")
     averaged, raw = policy.state_dict(), ActionDecoderPolicy.from_pretrained(out / "checkpoints" / "step_0000020").state_dict()
     assert not torch.equal(averaged["model.action_in.weight"], raw["model.action_in.weight"]), \
         "final/ should hold the weight average, not the raw weights"
     assert policy.config.decoder_type == "flow_matching" and policy.config.extra["tasks"] == ["reach-v3"]
     assert policy.config.state_layout == "metaworld", "Meta-World tasks train with relative positions"
-    res = run(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
-               "--sampler", "sde", "--steps", "3"], env)
+    res = cli_main(["eval", "--checkpoint", str(out / "final"), "--episodes", "2", "--num-envs", "2", "--plot",
+                    "--sampler", "sde", "--steps", "3"])
     assert res.returncode == 0, res.stderr
     last = res.stdout.strip().splitlines()[-1]
     assert last.startswith("success_rate=") and 0.0 <= float(last.split("=")[1]) <= 1.0
@@ -73,13 +93,21 @@ def test_train_on_demonstrations_recorded_with_noise(tmp_path, env):
     (["train", "--demo-noise", "1.5"], "--demo-noise"),
     (["train", "--dataset", "/nonexistent/ds", "--demo-noise", "0.2"], "--demo-noise"),
     (["eval", "--checkpoint", "CKPT", "--sampler", "sde"], "sampler"),
+    (["train", "--dataset", "/nonexistent/ds"], "--dataset: /nonexistent/ds does not exist; expected a LeRobot dataset"),
+    (["train", "--dataset", "FILE"], "is a file; expected a LeRobot dataset directory"),
 ])
-def test_bad_input_gives_one_clear_line(tmp_path, env, args, message):
+def test_bad_input_gives_one_clear_line(tmp_path, cli_main, args, message):
     if "CKPT" in args:   # a DDPM checkpoint cannot be sampled with the SDE
         from action_decoder import DecoderConfig
-        ActionDecoderPolicy(DecoderConfig(state_dim=39, extra={"tasks": ["reach-v3"]})).save_pretrained(tmp_path / "c")
+        ActionDecoderPolicy(DecoderConfig(decoder_type="DDPM", state_dim=39, extra={"tasks": ["reach-v3"]})) \
+            .save_pretrained(tmp_path / "c")
         args = [str(tmp_path / "c") if a == "CKPT" else a for a in args]
-    res = run(args, env)
+    if "FILE" in args:
+        (tmp_path / "data.parquet").write_bytes(b"PAR1")
+        args = [str(tmp_path / "data.parquet") if a == "FILE" else a for a in args]
+    if args[0] == "train":
+        args = [*args, "--output-dir", str(tmp_path / "out")]
+    res = cli_main(args)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("action-decoder: error:") and message in lines[0], res.stderr
@@ -103,7 +131,7 @@ def test_corrupted_checkpoint_and_nan_dataset(tmp_path, env):
 
 
 def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
-    common = ["train", *TINY, "--decoder", "mean_flow", "--steps", "120", "--checkpoint-every", "10",
+    common = ["train", *TINY, "--decoder", "mean_flow", "--steps", "40", "--checkpoint-every", "10",
               "--log-every", "4", "--eval-episodes", "0", "--hidden-size", "64", "--num-layers", "2",
               "--batch-size", "64"]
     straight = run([*common, "--output-dir", str(tmp_path / "a")], env)
@@ -118,7 +146,7 @@ def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     proc.wait()
     assert not (out / "final").exists(), "the run finished before it could be killed"
     killed_at = (out / "checkpoints" / "last").read_text()
-    assert killed_at != "step_0000120"
+    assert killed_at != "step_0000040"
     # Without --resume the directory is protected; with it the run continues and ends where the
     # uninterrupted run ended, bit for bit (same optimizer, data order and noise).
     assert run([*common, "--output-dir", str(out)], env).returncode == 2
@@ -129,11 +157,11 @@ def test_kill_and_resume_continues_from_last_checkpoint(tmp_path, env):
     b = ActionDecoderPolicy.from_pretrained(out / "final").state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     log = json.loads((out / "train_log.json").read_text())["history"]
-    assert [h["step"] for h in log] == list(range(4, 121, 4))
+    assert [h["step"] for h in log] == list(range(4, 41, 4))
     # A log row whose window spans the checkpoint the run resumed from is the uninterrupted run's row.
     assert log == json.loads((tmp_path / "a" / "train_log.json").read_text())["history"]
     from action_decoder.train import lr_factor
-    assert [h["lr"] for h in log[:2]] == pytest.approx([1e-3 * lr_factor(3, 100, 120), 1e-3 * lr_factor(7, 100, 120)])
+    assert [h["lr"] for h in log[:2]] == pytest.approx([1e-3 * lr_factor(3, 100, 40), 1e-3 * lr_factor(7, 100, 40)])
 
 
 @pytest.mark.parametrize("decoder", ["flow_matching", "mean_flow"])
@@ -327,7 +355,16 @@ def test_dataset_training_and_errors_without_the_simulator(tmp_path, env):
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert ActionDecoderPolicy.from_pretrained(tmp_path / "out" / "final").config.extra["tasks"] == ["mine"]
+    # A policy of another robot needs no simulator to be told that eval runs Meta-World tasks...
     res = subprocess.run([sys.executable, str(script), "eval", "--checkpoint", str(tmp_path / "out" / "final")],
+                         env=env, capture_output=True, text=True, timeout=300)
+    _one_line(res, "closed-loop evaluation runs Meta-World tasks", "['mine']", "model card")
+    # ...and a Meta-World policy without the simulator is told how to install it.
+    from action_decoder import DecoderConfig
+
+    ActionDecoderPolicy(DecoderConfig(hidden_size=32, num_hidden_layers=1, extra={"tasks": ["reach-v3"]})) \
+        .save_pretrained(tmp_path / "mw")
+    res = subprocess.run([sys.executable, str(script), "eval", "--checkpoint", str(tmp_path / "mw")],
                          env=env, capture_output=True, text=True, timeout=300)
     _one_line(res, "gymnasium", "action-decoder[sim]")
 
@@ -484,3 +521,103 @@ def test_torchrun_resume_continues_each_processes_own_streams(tmp_path, env):
                          env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert float(res.stdout.split("MAXDIFF")[1].split()[0]) == 0.0 and "SAMELOG True" in res.stdout, res.stdout
+
+
+def test_a_refused_run_leaves_no_directory_holding_only_its_lock(tmp_path, cli_main):
+    missing = tmp_path / "no_such_dataset"
+    out = tmp_path / "train_out"
+    res = cli_main(_ds_args(str(missing), out, "--steps", "2"))
+    assert res.returncode == 2 and not out.exists(), sorted(p.name for p in out.iterdir())
+    kept = tmp_path / "kept"                                   # a directory the user made stays, without a lock
+    kept.mkdir()
+    assert cli_main(_ds_args(str(missing), kept, "--steps", "2")).returncode == 2
+    assert kept.is_dir() and not any(kept.iterdir())
+    ft = tmp_path / "ft_out"
+    res = cli_main(["finetune", "--checkpoint", str(tmp_path / "no_such_checkpoint"), "--output-dir", str(ft)])
+    assert res.returncode == 2 and not ft.exists()
+
+
+def _saved_policy(path, decoder="flow_matching", state_dim=39, action_dim=4, tasks=("reach-v3",)):
+    from action_decoder import DecoderConfig
+
+    cfg = DecoderConfig(decoder_type=decoder, state_dim=state_dim, action_dim=action_dim, hidden_size=32,
+                        num_hidden_layers=1, context_dim=len(tasks) if len(tasks) > 1 else None,
+                        extra={"tasks": list(tasks), "train": {"dataset": "data/blocks"}})
+    ActionDecoderPolicy(cfg).save_pretrained(path)
+    return str(path)
+
+
+@pytest.mark.parametrize("tasks", [("push the block",), ("push the block", "lift the cube")])
+def test_finetune_of_a_policy_of_another_robot_is_one_line_without_a_circle(tmp_path, cli_main, tasks):
+    ckpt = _saved_policy(tmp_path / "blocks", state_dim=6, action_dim=2, tasks=tasks)
+    for more in ([], ["--task", "metaworld/push"]):           # naming a Meta-World task does not send it elsewhere
+        line = _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o"), *more]),
+                         "RL fine-tuning runs Meta-World tasks", "push the block", "6-d state")
+        assert "--task" not in line and "not among" not in line
+    if len(tasks) > 1:      # Meta-World's widths, other tasks: --task cannot give a multi-task policy its token
+        ckpt = _saved_policy(tmp_path / "mw_widths", tasks=tasks)
+        line = _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o"),
+                                   "--task", "metaworld/push"]), "RL fine-tuning runs Meta-World tasks")
+        assert "not among" not in line
+
+
+def test_finetune_of_a_ddpm_policy_reaches_its_refusal_whatever_its_tasks(tmp_path, cli_main):
+    for name, kw in (("other_robot", {"state_dim": 6, "action_dim": 2, "tasks": ("push the block",)}),
+                     ("multi_task", {"tasks": ("reach-v3", "push-v3")})):
+        ckpt = _saved_policy(tmp_path / name, decoder="DDPM", **kw)
+        _one_line(cli_main(["finetune", "--checkpoint", ckpt, "--output-dir", str(tmp_path / "o")]),
+                  "flow_matching or mean_flow", "decoder_type='DDPM'")
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "finetune"])
+def test_help_gives_each_option_one_line_without_measurements(command, capsys, monkeypatch):
+    """`--help`: per option one line saying what it does and its default; measurements live in the
+    benchmark pages."""
+    from dataclasses import fields
+
+    from action_decoder.evaluate import EvalConfig
+    from action_decoder.rl import FinetuneConfig
+    from action_decoder.train import TrainConfig
+
+    from action_decoder import cli
+
+    monkeypatch.setenv("COLUMNS", "400")
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([command, "--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    body = text[text.index("--help"):]                     # the options, boxed (a terminal) or not
+    rows = [line.strip("│ ").rstrip() for line in body.splitlines() if line.strip("│ ─-╰╯╭╮")]
+    options, current = {}, None
+    for row in rows:
+        if row.startswith("-"):
+            current = row.split()[0].rstrip(",")
+            options[current] = [row]
+        elif current is not None:
+            options[current].append(row)
+    config = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig}[command]
+    flags = {f"--{f.name.replace('_', '-')}" for f in fields(config)}
+    assert flags <= set(options), flags - set(options)
+    for flag in flags:
+        text = " ".join(options[flag])
+        help_lines = [r for r in options[flag] if not r.startswith("-")] or [options[flag][0]]
+        # The flag and its metavar may take a line of their own; the help itself is one line.
+        assert len(help_lines) == 1, (flag, options[flag])
+        described = re.sub(r"\((default|required)[^)]*\)", "", help_lines[0].split("  ")[-1]).strip()
+        assert len(described) > 8 and not described.startswith("-"), (flag, text)
+        assert "%" not in text and "→" not in text, (flag, text)
+
+
+def test_record_into_a_read_only_place_names_output_dir_before_recording(tmp_path, cli_main):
+    import tempfile
+
+    try:                                        # /sys refuses new files even to root (sysfs)
+        tempfile.TemporaryFile(dir="/sys").close()
+        pytest.skip("/sys is writable here")
+    except OSError:
+        pass
+    for out in ("/sys/action_decoder_demos", str(tmp_path / "a_file" / "demos")):
+        (tmp_path / "a_file").write_text("x")
+        res = cli_main(["record", "--task", "metaworld/reach", "--demos", "1", "--output-dir", out])
+        _one_line(res, "--output-dir: cannot write the dataset to", out)
+        assert "recorded" not in res.stdout

@@ -6,13 +6,13 @@ import types
 import pytest
 
 from action_decoder import DecoderConfig
-from action_decoder.config import CONFIG_FORMAT_VERSION
+from action_decoder.config import ADDED_FIELDS, CONFIG_FORMAT_VERSION, OLDEST_FORMAT_VERSION
 
 
 def test_go1_defaults():
     c = DecoderConfig()
     assert (c.decoder_type, c.num_train_timesteps, c.beta_schedule, c.prediction_type) == (
-        "DDPM", 1000, "squaredcos_cap_v2", "sample")
+        "flow_matching", 1000, "squaredcos_cap_v2", "sample")
     assert c.flow_sde_use is False and c.default_sampler == "ode"
     assert (c.num_inference_timesteps, c.flow_sde_num_steps) == (10, 10)
     assert DecoderConfig(decoder_type="flow_matching", flow_sde_use=True).default_sampler == "sde"
@@ -197,3 +197,15 @@ def test_extra_that_json_cannot_hold_is_refused_at_construction():
 
     with pytest.raises(ValueError, match=r"extra: expected JSON data .*ndarray"):
         DecoderConfig(extra={"tasks": np.array(["a", "b"])})
+
+
+def test_the_default_decoder_is_the_clis_and_saved_or_go1_configs_keep_theirs(tmp_path):
+    from action_decoder.train import TrainConfig
+
+    assert DecoderConfig().decoder_type == TrainConfig().decoder == "flow_matching"
+    assert DecoderConfig.from_go1({"action_dim": 7}).decoder_type == "DDPM"          # GO-1's Base default
+    saved = DecoderConfig(decoder_type="DDPM")
+    saved.to_json(tmp_path / "config.json")
+    assert DecoderConfig.from_json(tmp_path / "config.json").decoder_type == "DDPM"
+    for version in range(OLDEST_FORMAT_VERSION, CONFIG_FORMAT_VERSION):      # every readable format stores it
+        assert "decoder_type" not in ADDED_FIELDS.get(version + 1, {})

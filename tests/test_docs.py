@@ -25,6 +25,18 @@ def _mkdocs_build(root: Path, site: Path) -> subprocess.CompletedProcess:
                           cwd=root, env=env, capture_output=True, text=True, timeout=300)
 
 
+def _described_entries(html: str) -> dict[str, bool]:
+    """Each rendered API entry's id → whether it has text of its own (a paragraph in its contents before
+    its first member)."""
+    entries = {}
+    for heading in re.finditer(r'<h\d id="([^"]+)" class="doc doc-heading">', html):
+        rest = html[heading.end():]
+        start = rest.find('<div class="doc doc-contents')
+        member = re.search(r'<div class="doc doc-(object|children)', rest[start + 1:])
+        entries[heading[1]] = "<p>" in rest[start:start + 1 + (member.start() if member else len(rest))]
+    return entries
+
+
 @pytest.fixture(scope="module")
 def mkdocs_available():
     if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None:
@@ -49,6 +61,17 @@ def test_mkdocs_build_strict_passes_and_renders_every_public_name(mkdocs_availab
                                                             "config.DecoderConfig")]
     missing = [name for page, name in anchors if f'id="{name}"' not in html[page]]
     assert not missing, f"rendered without a documented entry: {missing}"
+    # Every entry of the policy page says what it is: DecoderConfig's fields above all (attribute
+    # docstrings; `#` comments never reach the reference).
+    from dataclasses import fields
+
+    from action_decoder import DecoderConfig
+
+    described = _described_entries(html["policy"])
+    config_fields = [f"action_decoder.config.DecoderConfig.{f.name}" for f in fields(DecoderConfig)]
+    assert all(name in described for name in config_fields), [n for n in config_fields if n not in described]
+    bare = [name for name, has_text in described.items() if not has_text]
+    assert not bare, f"rendered without a description: {bare}"
     assert set(action_decoder.rl.__all__) == {"FinetuneConfig", "finetune"}
 
 
@@ -171,3 +194,35 @@ def test_cameras_guide_example_runs():
         os.chdir(cwd)
     assert scope["chunk"].shape[1:] == (8, 2) and scope["policy"].config.cameras == (
         "observation.images.top", "observation.images.wrist")
+
+
+def test_real_time_chunking_guide_loop_runs_as_written(tmp_path):
+    """The guide's control loop, on a small flow-matching checkpoint saved where it loads one from."""
+    import torch
+
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+
+    blocks = [b for b in _python_blocks(ROOT / "docs" / "guides" / "real_time_chunking.md") if "prev_chunk=" in b]
+    assert len(blocks) == 1
+    torch.manual_seed(0)
+    ActionDecoderPolicy(DecoderConfig(decoder_type="flow_matching", hidden_size=32, num_hidden_layers=1,
+                                      num_inference_timesteps=2)).save_pretrained(tmp_path / "runs" / "push" / "final")
+    scope: dict = {}
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        exec(compile(blocks[0], "real_time_chunking.md", "exec"), scope)
+    finally:
+        os.chdir(cwd)
+    s, d, chunk, queue = scope["s"], scope["d"], scope["chunk"], scope["queue"]
+    assert len(queue) == s + d and all(torch.equal(a, b) for a, b in zip(queue, chunk[0, : s + d]))
+
+
+def test_every_dataset_a_guide_records_is_used():
+    """A `record --output-dir DIR` in a page's commands is followed by a command that reads DIR."""
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs" / "guides").glob("*.md"))]:
+        commands = "\n".join(re.findall(r"```bash\n(.*?)```", page.read_text(), re.S))
+        for match in re.finditer(r"action-decoder record .*?--output-dir (\S+)", commands):
+            later = commands[match.end():]
+            assert f"--dataset {match[1]}" in later or f"root={match[1]}" in later, \
+                f"{page.name}: records {match[1]} and never uses it"

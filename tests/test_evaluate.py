@@ -198,7 +198,7 @@ def test_train_and_eval_a_camera_policy_on_metaworld_pixels_end_to_end(tmp_path)
         pytest.skip(f"no offscreen renderer here: {(probe.stderr.strip().splitlines() or ['?'])[-1]}")
     run = subprocess.run([sys.executable, "-m", "action_decoder.cli", "train", "--task", "metaworld/reach", "--demos", "2",
                           "--steps", "4", "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1",
-                          "--cameras", "corner2", "--image-size", "32", "--eval-episodes", "2",
+                          "--cameras", "corner2", "--image-size", "32", "--eval-episodes", "1",
                           "--output-dir", str(tmp_path / "run"), "--no-progress"],
                          env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
@@ -233,3 +233,10 @@ def test_video_fps_out_of_range_is_refused_before_any_episode(checkpoint, fps, m
 
 def test_device_auto_evaluates_on_what_the_machine_has(checkpoint):
     assert run_eval(EvalConfig(checkpoint=str(checkpoint), episodes=2, device="auto"))["success_rate"] == 0.5
+
+
+def test_the_episode_cap_eval_checks_before_importing_the_simulator_is_meta_worlds():
+    from action_decoder.envs import MAX_EPISODE_STEPS
+    from action_decoder.evaluate import EPISODE_CAP
+
+    assert EPISODE_CAP == MAX_EPISODE_STEPS

@@ -55,13 +55,17 @@ def env(tmp_path):
             "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")])}
 
 
-def test_trained_checkpoint_has_a_card_with_the_printed_success(tmp_path, env):
+def test_trained_checkpoint_has_a_card_with_the_printed_success(tmp_path, monkeypatch, capsys):
+    from action_decoder import cli as main_cli       # in this process: no interpreter start-up per call
+
     out = tmp_path / "run"
-    res = cli(["train", "--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hidden-size", "32",
-               "--num-layers", "1", "--no-progress", "--steps", "20", "--eval-episodes", "2",
-               "--output-dir", str(out)], env, tmp_path)
-    assert res.returncode == 0, res.stderr
-    printed = float(re.findall(r"^success_rate=([0-9.]+)$", res.stdout, re.M)[-1])
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    code = main_cli.main(["train", "--task", "metaworld/reach", "--demos", "2", "--batch-size", "16", "--hidden-size",
+                          "32", "--num-layers", "1", "--no-progress", "--steps", "20", "--eval-episodes", "2",
+                          "--output-dir", str(out)])
+    res = capsys.readouterr()
+    assert code == 0, res.err
+    printed = float(re.findall(r"^success_rate=([0-9.]+)$", res.out, re.M)[-1])
     card = out / "final" / "README.md"
     meta = front_matter(card)
     assert "library_name: action-decoder" in meta and "pipeline_tag: robotics" in meta
@@ -322,3 +326,68 @@ def test_saving_final_again_keeps_the_results_and_eval_files_of_the_same_weights
         next(policy.parameters()).add_(1.0)                     # other weights: their results do not apply
     save_final(tmp_path, policy, 200)
     assert read_results(final) == [] and not list(final.glob("eval_*"))
+
+
+def test_every_file_of_a_checkpoint_gets_the_umasks_mode(tmp_path):
+    old = os.umask(0o022)
+    try:
+        tiny_policy().save_pretrained(tmp_path / "c")
+    finally:
+        os.umask(old)
+    modes = {p.name: oct(p.stat().st_mode & 0o777) for p in (tmp_path / "c").iterdir()}
+    assert set(modes) == {"config.json", "model.safetensors", "README.md"}
+    assert set(modes.values()) == {"0o644"}, modes
+
+
+@pytest.mark.parametrize("hub", [{"HF_HUB_OFFLINE": "1"}, {"HF_ENDPOINT": "http://127.0.0.1:9"}],
+                         ids=["offline", "unreachable"])
+def test_push_to_hub_without_a_hub_is_one_line(tmp_path, env, hub):
+    """No network: offline mode, or an endpoint where nothing listens (port 9, refused at once)."""
+    script = ("from action_decoder import ActionDecoderPolicy, DecoderConfig\n"
+              "policy = ActionDecoderPolicy(DecoderConfig(hidden_size=32, num_hidden_layers=1))\n"
+              "policy.push_to_hub('someone/policy', token='hf_not_a_token')\n")
+    res = subprocess.run([sys.executable, "-c", script], env={**env, "HF_HOME": str(tmp_path / "hf"), **hub},
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1
+    assert res.stderr.count('  File "') <= 2, res.stderr[-2000:]      # the caller's line and push_to_hub's raise
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("ValueError: push_to_hub: could not upload to the Hub repo 'someone/policy'"), last
+
+
+def card_snippet(card: Path, checkpoint: Path) -> str:
+    """The card's "Use" code block, naming `checkpoint`."""
+    placeholder = "<this repo id or directory>"
+    code = card.read_text().split("## Use")[1].split("```python\n")[1].split("```")[0]
+    assert placeholder in code
+    return code.replace(placeholder, str(checkpoint))
+
+
+@pytest.mark.parametrize("kind", ["one task", "three tasks", "camera"])
+def test_the_cards_use_snippet_runs_as_written(tmp_path, kind):
+    torch.manual_seed(0)
+    extra = {"tasks": ["reach-v3", "push-v3", "door-open-v3"] if kind == "three tasks" else ["reach-v3"]}
+    cfg = DecoderConfig(decoder_type="flow_matching", state_dim=39, action_dim=4, action_chunk_size=8, hidden_size=32,
+                        num_hidden_layers=1, n_action_steps=8, num_inference_timesteps=2, extra=extra,
+                        context_dim=3 if kind == "three tasks" else None,
+                        cameras=("observation.images.corner2",) if kind == "camera" else (), image_size=32)
+    ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "c")
+    scope: dict = {}
+    exec(card_snippet(tmp_path / "c" / "README.md", tmp_path / "c"), scope)
+    assert list(scope["chunk"].shape) == [1, 8, 4]
+
+
+def test_a_runs_last_pointer_is_followed_and_another_file_is_one_line(tmp_path, monkeypatch):
+    root = tmp_path / "run" / "checkpoints"
+    tiny_policy().save_pretrained(root / "step_0000020")
+    (root / "last").write_text("step_0000020")
+    loaded = ActionDecoderPolicy.from_pretrained(root / "last")
+    assert all(torch.equal(loaded.state_dict()[k], v) for k, v in tiny_policy().state_dict().items())
+    # eval follows it too: the summary and the card row go into the step directory.
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("action_decoder.envs.evaluate", fake_evaluate([True, False]))
+    summary = run_eval(EvalConfig(checkpoint=str(root / "last"), episodes=2))
+    assert summary["checkpoint"] == str(root / "step_0000020")
+    assert [r["success_rate"] for r in read_results(root / "step_0000020")] == [0.5]
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ValueError, match=r"notes.txt is a file; expected a directory written by save_pretrained"):
+        ActionDecoderPolicy.from_pretrained(tmp_path / "notes.txt")

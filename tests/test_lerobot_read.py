@@ -292,3 +292,30 @@ def test_a_bad_task_index_names_the_file(tmp_path, values, match):
     pq.write_table(table, path)
     with pytest.raises(ValueError, match=rf"^{path}: {match}"):
         load_dataset(root)
+
+
+def test_eval_of_a_dataset_policy_says_what_to_run_instead_and_its_card_shows_the_validation(tmp_path, cli_main):
+    from huggingface_hub import ModelCard
+
+    code, _, err = cli_main(_train_args(V30, tmp_path / "o", "--steps", "2"))
+    assert code == 0, err
+    final = tmp_path / "o" / "final"
+    code, out, err = cli_main(["eval", "--checkpoint", str(final)])
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert "closed-loop evaluation runs Meta-World tasks" in lines[0] and "push the block" in lines[0]
+    assert "model card" in lines[0] and "unknown Meta-World task" not in lines[0]
+    val = json.loads((tmp_path / "o" / "train_log.json").read_text())["validation"]
+    card = (final / "README.md").read_text()
+    assert "action-decoder eval --checkpoint" not in card and "Closed-loop success is not measured" in card
+    assert f"| {val['val_loss']:.4f} | {val['val_action_mse']:.4f} |" in card
+    metrics = {r.metric_type: r.metric_value for r in ModelCard.load(final / "README.md").data.eval_results}
+    assert metrics == {"val_loss": val["val_loss"], "val_action_mse": val["val_action_mse"]}
+    # Saved again it keeps them; other weights (fine-tuned, say) do not carry them.
+    policy = ActionDecoderPolicy.from_pretrained(final)
+    policy.save_pretrained(tmp_path / "same")
+    assert f"| {val['val_loss']:.4f} |" in (tmp_path / "same" / "README.md").read_text()
+    with torch.no_grad():
+        policy.model.action_in.weight.add_(0.1)
+    policy.save_pretrained(tmp_path / "other")
+    assert "val_loss" not in (tmp_path / "other" / "README.md").read_text()

@@ -165,7 +165,7 @@ def test_distillation_term_fits_the_student_one_step_map_to_the_teacher_chunk_fr
     student = mm.make_policy("mean_flow", 4, 4, b)
     opt = torch.optim.Adam([p for p in student.parameters() if p.requires_grad], lr=3e-3)
     state = torch.randn(64, 4, generator=torch.Generator().manual_seed(1))
-    for step in range(300):
+    for step in range(100):           # far below the bound by then; untrained, the term is about the spread
         loss = mm.distillation_term(student, teacher, state, torch.Generator().manual_seed(step % 8))
         opt.zero_grad()
         loss.backward()

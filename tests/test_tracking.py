@@ -43,7 +43,7 @@ def _env(tmp_path) -> dict:
     return {**os.environ, "ACTION_DECODER_CACHE": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
 
 
-def test_train_events_and_jsonl_are_written_as_it_goes_and_a_resume_keeps_each_step_once(tmp_path):
+def test_train_events_and_jsonl_are_written_as_it_goes_and_a_resume_keeps_each_step_once(tmp_path, monkeypatch, capsys):
     ds, out = _dataset(tmp_path / "ds"), tmp_path / "run"
     args = [sys.executable, "-m", "action_decoder.cli", "train", "--dataset", ds, "--output-dir", str(out),
             "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1", "--eval-episodes", "0", "--no-progress",
@@ -62,9 +62,10 @@ def test_train_events_and_jsonl_are_written_as_it_goes_and_a_resume_keeps_each_s
     loss = scalars(out)["train/loss"]
     assert [s for s, _ in loss[:len(rows)]] == [r["step"] for r in rows] and len(loss) - len(rows) in (0, 1)
 
-    resumed = subprocess.run([*args, "--steps", str(checkpoint + 3), "--resume"], env=_env(tmp_path),
-                             capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    from action_decoder import cli                 # the resume in this process: no second interpreter start-up
+
+    monkeypatch.setenv("ACTION_DECODER_CACHE", str(tmp_path / "cache"))
+    assert cli.main([*args[3:], "--steps", str(checkpoint + 3), "--resume"]) == 0, capsys.readouterr().err[-2000:]
     # Steps past the checkpoint were trained again: each is in the log once, and TensorBoard drops the orphans.
     final = read_jsonl(out / "train_log.jsonl")
     steps = list(range(1, checkpoint + 4))

@@ -57,6 +57,8 @@ OLDEST_FORMAT_VERSION = 2
 # (churn; the ODE: 0.00, 0.14, 0.22, 0.34) and 3.30, 0.55, 0.37, 0.38 (explore); on two modes at
 # ±1 the energy distance at K = 3 is 0.060 (churn) and 0.022 (explore) against the ODE's 0.067.
 SDE_MIN_STEPS = 3
+GO1_DEFAULT_DECODER = "DDPM"
+"""The decoder of a GO-1 Base config that names none (`DecoderConfig.from_go1`)."""
 
 
 @dataclass
@@ -64,128 +66,180 @@ class DecoderConfig:
     """Everything that defines an action decoder: which decoder, its sampler, and the network.
 
     Field names of the first block follow GO-1's Base config so that GO-1 configs load as-is
-    (`from_go1`). `flow_sde_s_churn` is the noise level `s` of every SDE mode: churn
+    (`from_go1`); the defaults are this library's (flow matching, as `action-decoder train`), GO-1's
+    Base config defaults to DDPM. `flow_sde_s_churn` is the noise level `s` of every SDE mode: churn
     `s·√(ε/(t+ε))`, fixed `s`, explore `s·√((1−t)/t)`.
     """
 
     # --- decoder (GO-1 Base config names) ---
-    decoder_type: str = "DDPM"
+    decoder_type: str = "flow_matching"
+    """Which decoder: "DDPM", "flow_matching" or "mean_flow". The default is the CLI's (`train --decoder`);
+    a checkpoint keeps the type it was trained with (config.json stores every field), and `from_go1`
+    keeps GO-1's default, DDPM, for a GO-1 config that names none."""
     num_train_timesteps: int = 1000
-    num_inference_timesteps: int = 10      # the ODE's (or MeanFlow's, or DPM-Solver's) steps
-    flow_sde_num_steps: int = 10           # the SDE's steps (its own: MeanFlow's K = 1 is too few)
+    """DDPM: diffusion steps of the training noise schedule."""
+    num_inference_timesteps: int = 10
+    """Sampling steps K of the native sampler: the Euler ODE (flow matching), MeanFlow's steps, or DPM-Solver++ (DDPM)."""
+    flow_sde_num_steps: int = 10
+    """Steps of the SDE sampler (its own: MeanFlow's K = 1 is too few for an SDE)."""
     prediction_type: str = "sample"
+    """DDPM: what the network predicts, "epsilon" (the noise) or "sample" (the clean chunk)."""
     clip_sample: bool = False
+    """DDPM: clip the predicted clean chunk to [-1, 1] (only with min_max normalisation)."""
     beta_schedule: str = "squaredcos_cap_v2"
+    """DDPM: the noise schedule, "linear", "scaled_linear" or "squaredcos_cap_v2" (diffusers' names)."""
     action_chunk_size: int = 16
+    """H: actions per sampled chunk."""
     # --- SDE sampling for flow matching and MeanFlow ---
     flow_sde_use: bool = False
+    """Sample with the marginal-preserving SDE by default instead of the ODE (flow_matching and mean_flow)."""
     flow_sde_mode: str = "churn"
+    """The SDE's noise schedule σ(t) with level s = `flow_sde_s_churn`: "churn" s·√(ε/(t+ε)), "fixed" s,
+    "explore" s·√((1−t)/t)."""
     flow_sde_s_churn: float = 0.7
+    """s: the noise level of every SDE mode."""
     flow_sde_eps: float = 1e-4
+    """ε of the churn schedule (how fast its noise fades as t grows)."""
     flow_sde_learn_sigma: bool = False
+    """Learn a multiplier of σ(t) (a policy parameter, starting at `flow_sde_sigma_init`)."""
     flow_sde_sigma_init: float = 1.0
+    """Initial value of the learnable σ multiplier."""
     flow_sde_clip_t: float = 1e-2
+    """The SDE's times are clipped to [clip_t, 1 − clip_t] where σ(t) or the score would divide by t or 1 − t."""
     flow_sde_return_logprob: bool = False
+    """Return each SDE chunk's log-probability (and per-step log-probs) by default."""
     flow_sde_logprob_sigma_only: bool = True
-    # "explore" clamps t at this time near the noise end; None: the first interior grid point.
+    """Log-probs pass gradients to σ only (the velocity network's output is detached in them)."""
     flow_sde_t_min: Optional[float] = None
-    # The velocity a mean_flow decoder's ODE/SDE samplers integrate: "boundary" u(x, t, t), or
-    # "identity" u + (t − r)·du/dt by JVP (`flows.velocity_from_meanflow`).
+    """"explore" clamps t at this time near the noise end; None: the first interior grid point."""
     meanflow_sde_velocity: str = "boundary"
+    """The velocity a mean_flow decoder's ODE/SDE samplers integrate: "boundary" u(x, t, t), or
+    "identity" u + (t − r)·du/dt by JVP (`flows.velocity_from_meanflow`)."""
     # --- MeanFlow training recipe (NOTES §2); times in our convention (t = 0 noise) ---
     meanflow_ratio_r_neq_t: float = 0.25
-    meanflow_time_dist: str = "uniform"     # "logit_normal" (the paper) or "uniform" (see README)
+    """MeanFlow: fraction of training (t, r) pairs with r ≠ t."""
+    meanflow_time_dist: str = "uniform"
+    """MeanFlow: distribution of (t, r), "uniform" or "logit_normal" (the paper's)."""
     meanflow_time_mean: float = 0.4
+    """MeanFlow, logit_normal: mean of the normal before the logistic."""
     meanflow_time_std: float = 1.0
+    """MeanFlow, logit_normal: standard deviation of the normal before the logistic."""
     meanflow_adaptive_p: float = 0.5
+    """MeanFlow: power p of the adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     meanflow_adaptive_c: float = 1e-3
-    # How training gets du/dt for the r ≠ t rows: "finite_difference" (central difference over 2n
-    # shifted rows, in a no-grad second call on a CPU or under autocast, which then runs in float32,
-    # inside u's call on CUDA; float32/float64 weights only) or "jvp" (exact, forward-mode AD; any
-    # dtype). A step costs 1.20–1.24× a flow-matching step with the difference on a CPU (1.04–1.06×
-    # on an H200), 1.38–1.55× with the JVP (3.9–4.1× on the H200); the two train alike (same on-route share within seed noise, 3 seeds of the multimodal
-    # task: docs/benchmarks/meanflow_cost.md). A saved config.json carries the value it trained
-    # with; format-2 files, older than the field, read as "jvp" (ADDED_FIELDS).
+    """MeanFlow: c of the adaptive loss weight 1/(error + c)^p."""
     meanflow_dudt: str = "finite_difference"
-    # The r ≠ t rows' regression target (`flows.losses.meanflow_loss`): "identity", the MeanFlow
-    # identity v − (t − r)·du/dt (`meanflow_dudt` applies); "split", interval consistency λ·u(z, t, s)
-    # + (1 − λ)·u(z_s, s, r) from two no-grad calls, no du/dt (docs/benchmarks/meanflow_ablations.md).
-    # Format-4 files, older than the field, read as "identity".
+    """How MeanFlow training gets du/dt for the r ≠ t rows: "finite_difference" (a central difference
+    over 2n shifted rows, in a no-grad second call on a CPU or under autocast, which then runs in
+    float32, inside u's call on CUDA; float32/float64 weights only) or "jvp" (exact, forward-mode AD;
+    any dtype). The two train alike; their cost is measured in docs/benchmarks/meanflow_cost.md.
+    Format-2 files, older than the field, read as "jvp"."""
     meanflow_target: str = "identity"
-    # What the FM/MeanFlow head outputs: the velocity itself, or the clean chunk x̂ from which
-    # v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise.
+    """The r ≠ t rows' regression target (`flows.losses.meanflow_loss`): "identity", the MeanFlow
+    identity v − (t − r)·du/dt (`meanflow_dudt` applies); "split", interval consistency λ·u(z, t, s)
+    + (1 − λ)·u(z_s, s, r) from two no-grad calls, no du/dt (docs/benchmarks/meanflow_ablations.md).
+    Format-4 files, older than the field, read as "identity"."""
     flow_prediction: str = "velocity"
+    """What the flow matching / MeanFlow head outputs: "velocity" itself, or "sample", the clean chunk x̂
+    from which v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise."""
     # --- real-time chunking (`flows/rtc.py`; used when a previous chunk is passed to sampling) ---
-    # β: the clip of the guidance weight (the paper's 5; 0: no guidance, only the frozen prefix):
-    # flow matching's min(β, (1 − t)/(t·r_t²), 1/Δt), MeanFlow's min(β, 1/(1 − t)).
     rtc_guidance_weight: float = 5.0
-    # How the guidance weights decay over the overlap after the frozen prefix: "exp" (the paper),
-    # "linear", "ones" (the whole overlap as strongly as the prefix), "zeros" (only the prefix).
+    """RTC β: the clip of the guidance weight (the paper's 5; 0: no guidance, only the frozen prefix):
+    flow matching's min(β, (1 − t)/(t·r_t²), 1/Δt), MeanFlow's min(β, 1/(1 − t))."""
     rtc_schedule: str = "exp"
-    # The rows guided after the d frozen ones: "overlap" (the paper: every row prev_chunk covers,
-    # H − s) or "execution" (only those the new chunk executes before the next plan: rows < d + s,
-    # s = n_action_steps; later rows are re-planned anyway and stay free). "auto": overlap for flow
-    # matching, whose Jᵀ-guidance is re-projected by the later steps, and execution for MeanFlow,
-    # whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both).
+    """How RTC's guidance weights decay over the overlap after the frozen prefix: "exp" (the paper),
+    "linear", "ones" (the whole overlap as strongly as the prefix), "zeros" (only the prefix)."""
     rtc_horizon: str = "auto"
+    """The rows RTC guides after the d frozen ones: "overlap" (the paper: every row prev_chunk covers,
+    H − s) or "execution" (only those the new chunk executes before the next plan: rows < d + s,
+    s = n_action_steps; later rows are re-planned anyway and stay free). "auto": overlap for flow
+    matching, whose Jᵀ-guidance is re-projected by the later steps, and execution for MeanFlow,
+    whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both)."""
     # --- the Action Expert network ---
     state_dim: int = 39
+    """Width of `batch["state"]` (Meta-World's 39 by default)."""
     action_dim: int = 4
+    """D: width of each action."""
     hidden_size: int = 128
+    """Width of the Action Expert transformer."""
     num_hidden_layers: int = 4
+    """Transformer layers."""
     num_attention_heads: int = 4
+    """Attention heads (hidden_size / heads must be even, for rotary positions)."""
     num_key_value_heads: int = 2
-    intermediate_size: Optional[int] = None  # None: SwiGLU's 8/3·hidden, rounded to 8
+    """Key/value heads (grouped-query attention; a divisor of num_attention_heads)."""
+    intermediate_size: Optional[int] = None
+    """Width of the SwiGLU feed-forward (None: 8/3·hidden_size, rounded to a multiple of 8)."""
     rms_norm_eps: float = 1e-6
+    """ε of the RMS norms."""
     rope_theta: float = 10000.0
+    """Base of the rotary position embedding."""
     # --- conditioning (None: not used) ---
     context_dim: Optional[int] = None
+    """Width C of `batch["context"]` tokens [B, L, C] (None: no context tokens; a multi-task policy's one-hot
+    task token has C = the number of tasks)."""
     vlm_num_layers: Optional[int] = None
+    """Layers of the VLM whose KV cache (`batch["vlm_key_values"]`) conditions the expert (None: none)."""
     vlm_head_dim: Optional[int] = None
+    """Head dim of that VLM's keys and values (projected per layer to the expert's)."""
     vlm_num_key_value_heads: Optional[int] = None
+    """Key/value heads of that VLM's cache."""
     # --- cameras (expert/image_encoder.py; none: no image encoder) ---
-    # LeRobot feature keys, e.g. "observation.images.corner2" (or a dataset's single "observation.image");
-    # batch["images"] [B, N_cam, 3, S, S] stacks them in this order.
     cameras: tuple = ()
-    image_size: int = 64                   # S: square frames, in pixels
-    image_encoder: str = "conv"            # "conv" (small, GroupNorm) or "resnet18" (transformers, GroupNorm)
-    image_tokens_per_camera: int = 4       # pooled cells of the feature map, one context token each
-    # resnet18 only: a local directory or Hub id of a ResNet-18 (`ResNetModel.from_pretrained`),
-    # read when the policy is built for training; its BatchNorm statistics stay frozen.
+    """LeRobot camera feature keys, e.g. "observation.images.corner2" (or a dataset's single
+    "observation.image"); `batch["images"]` [B, N_cam, 3, S, S] stacks them in this order (empty: no cameras)."""
+    image_size: int = 64
+    """S: side of the square camera frames, in pixels."""
+    image_encoder: str = "conv"
+    """The camera backbone: "conv" (small, GroupNorm) or "resnet18" (transformers, GroupNorm)."""
+    image_tokens_per_camera: int = 4
+    """Context tokens per camera: pooled cells of the feature map."""
     image_encoder_pretrained: Optional[str] = None
-    freeze_image_encoder: bool = False     # the backbone's weights stay fixed (tokens' projection trains)
-    image_shift: int = 0                   # training-time random shift: pad by this many pixels, crop back
-                                           # (0: none; 4 px cost 50 points on drawer-open, docs/benchmarks/cameras.md)
+    """resnet18 only: a local directory or Hub id of a ResNet-18 (`ResNetModel.from_pretrained`), read when
+    the policy is built for training; its BatchNorm statistics stay frozen."""
+    freeze_image_encoder: bool = False
+    """Keep the backbone's weights fixed (the tokens' projection trains)."""
+    image_shift: int = 0
+    """Training-time random shift of camera frames: pad by this many pixels, crop back (0: none;
+    measured in docs/benchmarks/cameras.md)."""
     # --- policy ---
-    n_action_steps: int = 4     # of 16: re-planning every 4 actions instead of 8 took flow matching
-                                # from 72.4 to 80.4 % on nine hard Meta-World tasks (10 demos)
+    n_action_steps: int = 4
+    """Actions executed from each chunk before re-planning (at most action_chunk_size; re-planning rates
+    are compared in docs/benchmarks/metaworld_bc_n8.md)."""
     normalization_mode: str = "mean_std"
-    # An action dimension whose spread (std for mean_std, half range for min_max) is below this
-    # is constant and is divided by the floor `normalize.SPREAD_FLOOR` (0.01) instead; any other
-    # keeps its own spread, so an end-effector delta of std 0.003 reaches the network at unit
-    # scale. State dimensions take the floor below 0.01. Format-5 files, older than the field,
-    # read as 0.01 (every action spread floored at 0.01).
+    """How states and actions reach the network: "mean_std", "min_max" (to [-1, 1]) or "identity"
+    (normalised outside, e.g. by LeRobot's processors)."""
     action_constant_below: float = ACTION_CONSTANT_BELOW
-    # tanh on every sampled chunk in environment units, into (−1, 1): what a policy fine-tuned with
-    # SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
-    # Format-5 files, older than the field, read as False.
+    """An action dimension whose spread (std for mean_std, half range for min_max) is below this is
+    constant and is divided by the floor `normalize.SPREAD_FLOOR` (0.01) instead; any other keeps its
+    own spread, so an end-effector delta of std 0.003 reaches the network at unit scale. State
+    dimensions take the floor below 0.01. Format-5 files, older than the field, read as 0.01 (every
+    action spread floored at 0.01)."""
     action_squash: bool = False
-    # A noise actor (`noise_actor.NoiseActor`, trained by `finetune --algo dsrl`): an MLP of this width
-    # maps the state (and pooled context) to the sampler's initial noise chunk, so that the decoder's
-    # deterministic sampler turns it into the chunk. 0: none; the noise is N(0, I). Format-6 files read 0.
+    """tanh on every sampled chunk in environment units, into (−1, 1): what a policy fine-tuned with
+    SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
+    Format-5 files, older than the field, read as False."""
     noise_actor_hidden: int = 0
-    # The actor's noise lies in (−b, b) per element (b·tanh(w/b), close to w inside ±b/2).
+    """Width of a noise actor (`noise_actor.NoiseActor`, trained by `finetune --algo dsrl`): an MLP that maps
+    the state (and pooled context tokens) to a Gaussian over the sampler's initial noise chunk, which the
+    decoder's deterministic sampler turns into the chunk. 0: none; the noise is N(0, I). Format-6 files read 0."""
     noise_actor_bound: float = 2.5
-    state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
-                                 # and gripper only, for camera policies (state_layout.py)
+    """The noise actor's noise lies in (−b, b) per element (b·tanh(w/b), close to w inside ±b/2)."""
+    state_layout: str = "flat"
+    """What the state is: "flat" (as given), "metaworld" (relative positions appended) or
+    "metaworld_proprio" (the hand and gripper only, for camera policies; state_layout.py)."""
     default_ctrl_freq: float = 10.0
-    extra: dict = field(default_factory=dict)  # free-form, carried through save/load
+    """Control frequency in Hz the network is told when `batch["ctrl_freq"]` is not given."""
+    extra: dict = field(default_factory=dict)
+    """Free-form JSON data carried through save/load: the trained task names ("tasks"), the training
+    options ("train"), the data's size ("data"), a dataset run's held-out validation ("validation")."""
 
     def __post_init__(self) -> None:
         self.validate()
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
+        """Raise ValueError naming the first field with a value outside its allowed ones (run on construction)."""
         _choice("decoder_type", self.decoder_type, DECODER_TYPES)
         _choice("prediction_type", self.prediction_type, PREDICTION_TYPES)
         _choice("beta_schedule", self.beta_schedule, BETA_SCHEDULES)
@@ -300,6 +354,7 @@ class DecoderConfig:
     # ------------------------------------------------------------------ derived
     @property
     def default_sampler(self) -> str:
+        """"sde" when flow_sde_use, else "ode": what `sample` uses when no sampler is named."""
         return "sde" if self.flow_sde_use else "ode"
 
     @property
@@ -309,14 +364,17 @@ class DecoderConfig:
 
     @property
     def uses_vlm_cache(self) -> bool:
+        """Whether a VLM's KV cache conditions the expert (vlm_num_layers is set)."""
         return self.vlm_num_layers is not None
 
     @property
     def uses_cameras(self) -> bool:
+        """Whether camera frames condition the expert (cameras is not empty)."""
         return len(self.cameras) > 0
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict:
+        """Every field by name (`extra` included), as `to_json` writes them."""
         return dataclasses.asdict(self)
 
     @classmethod
@@ -382,6 +440,7 @@ class DecoderConfig:
             for name in theirs:
                 if ours not in values and name in src:
                     values[ours] = src[name]
+        values.setdefault("decoder_type", GO1_DEFAULT_DECODER)
         values.update(overrides)
         return cls(**values)
 

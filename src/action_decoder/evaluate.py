@@ -9,14 +9,14 @@ import os
 import shutil
 import sys
 import tempfile
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
 import torch
 
-from .policy import ActionDecoderPolicy
+from .policy import ActionDecoderPolicy, follow_last
 from .tracking import log_evaluation, require_wandb
 from .train import task_context
 
@@ -26,56 +26,49 @@ class EvalConfig:
     """Run closed-loop episodes of a checkpoint on layouts disjoint from its demonstrations."""
 
     checkpoint: str
-    """A directory written by `save_pretrained` (e.g. outputs/train/final)."""
+    """A save_pretrained directory (e.g. outputs/train/final) or a Hub repo id."""
     episodes: int = 20
     """Episodes per task."""
     sampler: Optional[Literal["ode", "sde", "euler"]] = None
-    """None: the checkpoint's configured sampler."""
+    """ode, sde or euler (None: the checkpoint's own)."""
     steps: int = 0
-    """Sampling steps K (0: the checkpoint's own, flow_sde_num_steps for the SDE, else num_inference_timesteps)."""
+    """Sampling steps K (0: the checkpoint's own)."""
     seed: int = 0
-    """Evaluation layouts 1 000 000 + seed·1000 + j: never a demonstration's layout."""
+    """Seed of the evaluation layouts (1 000 000 + seed·1000 + j, never a demonstration's)."""
     n_action_steps: int = 0
-    """Actions executed per chunk before re-planning (0: the checkpoint's n_action_steps)."""
+    """Actions executed per chunk before re-planning (0: the checkpoint's own)."""
     task: Optional[str] = None
-    """Task(s) to evaluate (default: those the policy was trained on)."""
+    """Task(s) to evaluate (None: those the policy was trained on)."""
     output: Optional[str] = None
-    """JSON summary path, or a directory for it (default: the checkpoint directory, as
-    eval_<sampler>_k<steps>_n<n_action_steps>_seed<seed>_e<episodes>.json plus the delay, RTC, episode
-    cap and tasks where they differ from the defaults, so evaluations with other settings, the one at
-    the end of training included, are all kept)."""
+    """JSON summary file, or a directory for it (None: the checkpoint directory, named by the settings)."""
     plot: bool = False
-    """Also plot the hand trajectories next to the JSON summary (same name, .png)."""
+    """Also plot the hand paths next to the summary (.png)."""
     max_steps: int = 500
-    """Steps after which an episode counts as a failure (Meta-World's cap, 500; below it the JSON name ends
-    in _t<max_steps>)."""
+    """Episode cap in env steps; an episode still running there fails (Meta-World's cap: 500)."""
     video: bool = False
-    """Film the first --video-episodes episodes of each task offscreen (MuJoCo with MUJOCO_GL=egl, else
-    osmesa) into H.264 mp4s next to the JSON summary: <stem>_<task>.mp4 (grid) or
-    <stem>_<task>_episode<j>.mp4; borders green for a success, red for a failure (envs/render.py)."""
+    """Film the first --video-episodes episodes of each task into H.264 mp4s next to the summary."""
     video_episodes: int = 4
-    """Episodes filmed per task (the first ones, by episode number)."""
+    """Episodes filmed per task."""
     video_layout: Literal["grid", "episodes"] = "grid"
-    """grid: one video per task, an ended episode holds its last frame; episodes: one video per episode."""
+    """grid: one video per task; episodes: one video per episode."""
     video_camera: str = "corner2"
-    """A Meta-World camera: topview, corner, corner2, corner3, corner4, behindGripper, gripperPOV."""
+    """Meta-World camera: topview, corner, corner2, corner3, corner4, behindGripper or gripperPOV."""
     video_size: int = 224
-    """Frame side in pixels, a multiple of 16 (H.264 macroblocks)."""
+    """Frame side in pixels, a multiple of 16."""
     video_fps: float = 0
-    """Frames per second (0: real time, one frame per env step: 80 for Meta-World)."""
+    """Frames per second (0: real time, one frame per env step)."""
     num_envs: int = 10
+    """Environments stepped together."""
     device: str = "cpu"
     """cpu, cuda, cuda:N, or auto (a GPU when there is one)."""
     wandb: bool = False
-    """Also log the success rates to Weights & Biases (pip install "action-decoder[wandb]"). They always go
-    to TensorBoard: in the checkpoint's run directory at its step, else next to the JSON summary."""
+    """Also log the success rates to Weights & Biases (the [wandb] extra); TensorBoard always."""
     wandb_project: str = "action-decoder"
+    """Weights & Biases project name."""
     delay: int = 0
-    """Simulated inference time in control steps (0..n_action_steps): the env keeps executing the old
-    chunk meanwhile, and the new one, planned from the observation d steps earlier, takes over after."""
+    """Simulated inference delay in control steps (0..n_action_steps)."""
     rtc: bool = False
-    """Real-time chunking: condition each new chunk on the old chunk's remaining actions (its first
-    `delay` ones frozen; flow_matching and mean_flow). Off: the chunks switch naively."""
+    """Real-time chunking: condition each chunk on the previous one's remaining actions."""
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
@@ -121,19 +114,50 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     return policy_fn
 
 
-def run_eval(cfg: EvalConfig) -> dict:
-    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
-    from .envs.render import EpisodeCamera
+def check_simulator_policy(policy: ActionDecoderPolicy, checkpoint: str, task: Optional[str], command: str) -> None:
+    """Refuse, in one line, a closed-loop run (`eval`, `finetune`) of a policy the library's simulator cannot
+    run (`model_card.simulator_policy`): one trained on a LeRobot dataset of another robot is not told to
+    pick a Meta-World task it never had; it is told what it was trained on and where its measurements are."""
+    from .model_card import simulator_policy, trained_on
+    from .state_layout import METAWORLD_STATE_DIM
 
+    config = policy.config
+    dims = (config.state_dim, config.action_dim) == (METAWORLD_STATE_DIM, 4)
+    # With --task, a single-task policy of Meta-World's widths may be run there; a multi-task one needs
+    # its own tasks' tokens, which a Meta-World task does not give.
+    if simulator_policy(config) or (task is not None and dims and len(config.extra.get("tasks") or []) <= 1):
+        return
+    what = {"eval": "closed-loop evaluation", "finetune": "RL fine-tuning"}[command]
+    instead = ("its held-out validation (val_loss, val_action_mse) is in its model card (README.md) and the run's "
+               "train_log.json; to act with it, run it in its own environment from Python (the card's Use section)"
+               if command == "eval" else
+               "fine-tune it with an RL loop of its own environment (policy.predict_action_chunk(batch, "
+               "sampler=\"sde\", return_logprob=True) gives chunks with log-probs)")
+    raise ValueError(f"--checkpoint: {what} runs Meta-World tasks ({METAWORLD_STATE_DIM}-d state, 4-d actions), and "
+                     f"{checkpoint} was trained on {trained_on(config)}: {instead}")
+
+
+EPISODE_CAP = 500
+"""Meta-World's episode cap (`envs.MAX_EPISODE_STEPS`, here without importing the simulator)."""
+
+
+def run_eval(cfg: EvalConfig) -> dict:
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
-    if not 1 <= cfg.max_steps <= MAX_EPISODE_STEPS:
-        raise ValueError(f"--max-steps: expected 1..{MAX_EPISODE_STEPS} (Meta-World's episode cap), "
-                         f"got {cfg.max_steps}")
+    if not 1 <= cfg.max_steps <= EPISODE_CAP:
+        raise ValueError(f"--max-steps: expected 1..{EPISODE_CAP} (Meta-World's episode cap), got {cfg.max_steps}")
     check_video_options(cfg)
     device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
+    if Path(cfg.checkpoint).expanduser().is_file():      # a run's checkpoints/last: its step_N directory
+        cfg = replace(cfg, checkpoint=str(follow_last(cfg.checkpoint)))
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint, map_location=device).eval()
+    # Before the simulator is imported: a policy of another robot needs neither the sim nor a task.
+    check_simulator_policy(policy, cfg.checkpoint, cfg.task, "eval")
+
+    from .envs import canonical_task, evaluate, resolve_tasks
+    from .envs.render import EpisodeCamera
+
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
     if not 1 <= n_exec <= policy.config.action_chunk_size:
         raise ValueError(f"--n-action-steps: expected 1..{policy.config.action_chunk_size} (the chunk length), "

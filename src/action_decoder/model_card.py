@@ -11,6 +11,7 @@ other weights (fine-tuned, retrained) never carries them over (`carried_results`
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 from pathlib import Path
@@ -51,6 +52,40 @@ def hub_dataset_id(path: Optional[str]) -> Optional[str]:
         return f"{match[1]}/{match[2]}"
     match = re.search(r"/huggingface/lerobot/([^/]+)/([^/]+?)/?$", text)
     return f"{match[1]}/{match[2]}" if match else None
+
+
+METAWORLD_TASK = re.compile(r"^[a-z][a-z0-9-]*-v3$")
+"""A Meta-World v3 task name, as generated demonstrations and `action-decoder record`'s datasets carry them."""
+
+
+def simulator_policy(config: DecoderConfig) -> bool:
+    """Whether `action-decoder eval` and `finetune` can run this policy closed loop: Meta-World's state
+    and action widths (39, 4), and Meta-World task names, if it names any (a LeRobot dataset's task
+    strings, "push the block", name none)."""
+    from .state_layout import METAWORLD_STATE_DIM
+
+    tasks = list(config.extra.get("tasks") or [])
+    return (config.state_dim, config.action_dim) == (METAWORLD_STATE_DIM, 4) and \
+        all(isinstance(t, str) and METAWORLD_TASK.match(t) for t in tasks)
+
+
+def trained_on(config: DecoderConfig) -> str:
+    """What the policy was trained on, in a few words: the dataset (and its tasks), for messages."""
+    train, tasks = config.extra.get("train") or {}, list(config.extra.get("tasks") or [])
+    shown = tasks if len(tasks) <= 3 else tasks[:3] + [f"... ({len(tasks)} in all)"]
+    source = f"the dataset {hub_dataset_id(train['dataset']) or train['dataset']}" if train.get("dataset") else \
+        "data of its own"
+    return (f"{source} (tasks {shown}, {config.state_dim}-d state, {config.action_dim}-d actions)" if tasks else
+            f"{source} ({config.state_dim}-d state, {config.action_dim}-d actions)")
+
+
+def validation_of(config: DecoderConfig, digest: Optional[str]) -> Optional[dict]:
+    """The held-out validation `action-decoder train --dataset` measured on the weights with this SHA-256
+    (`config.extra["validation"]`), or None (none measured, or measured on other weights)."""
+    val = config.extra.get("validation")
+    if not isinstance(val, dict) or digest is None or val.get("weights_sha256") != digest:
+        return None
+    return val
 
 
 def _result_row(result: EvalResult) -> Optional[dict]:
@@ -108,31 +143,65 @@ def merge_result(results: list[dict], row: dict) -> list[dict]:
     return [r for r in results if tuple(str(r[k]) for k in SETTINGS) != key] + [row]
 
 
-def build_card(config: DecoderConfig, num_parameters: int, results: list[dict]) -> ModelCard:
-    """The card of a policy with this config, parameter count and measured results (with
-    `config.extra["finetune_weights"]`, a "Fine-tuning" section says which weights of an RL run these are)."""
+def build_card(config: DecoderConfig, num_parameters: int, results: list[dict],
+               digest: Optional[str] = None) -> ModelCard:
+    """The card of a policy with this config, parameter count and measured results; `digest`, the
+    weights' SHA-256, shows the held-out validation measured on them (`validation_of`). With
+    `config.extra["finetune_weights"]`, a "Fine-tuning" section says which weights of an RL run these are."""
     train = config.extra.get("train") or {}
     tasks = list(config.extra.get("tasks") or [])
     dataset = hub_dataset_id(train.get("dataset"))
+    val = validation_of(config, digest)
     tags = ["robotics", LIBRARY_NAME, config.decoder_type.lower().replace("_", "-"), "action-chunking"]
     if (train and not train.get("dataset")) or results:      # trained on, or evaluated in, Meta-World
         tags.append("metaworld")
     name = f"{LIBRARY_NAME} {config.decoder_type}" + (f" on {', '.join(tasks)}" if 0 < len(tasks) <= 3 else
                                                        f" on {len(tasks)} tasks" if tasks else "")
+    evals = [_eval_result(r) for r in results] + (_validation_results(val, train) if val else [])
     data = ModelCardData(library_name=LIBRARY_NAME, pipeline_tag="robotics", tags=tags,
-                         datasets=[dataset] if dataset else None, model_name=name if results else None,
-                         eval_results=[_eval_result(r) for r in results] or None)
+                         datasets=[dataset] if dataset else None, model_name=name if evals else None,
+                         eval_results=evals or None)
     body = "\n".join([f"# {name}", "", f"An action decoder of the `{LIBRARY_NAME}` library: it maps robot "
                       f"state (and optional context tokens or a VLM's KV cache) to a chunk of "
                       f"{config.action_chunk_size} actions.", "", "## Policy", "", *_policy_table(config, num_parameters),
                       "", "## Training", "", *_training_lines(train, tasks, config.extra.get("data") or {}),
                       *(["", "## Fine-tuning", "", config.extra["finetune_weights"]]
                         if config.extra.get("finetune_weights") else []),
-                      "", "## Results", "", *_results_lines(results), "", "## Use", "", "```python",
-                      "from action_decoder import ActionDecoderPolicy", "",
-                      'policy = ActionDecoderPolicy.from_pretrained("<this repo id or directory>").eval()',
-                      'chunk = policy.predict_action_chunk({"state": state})   # [B, H, D], env units', "```", ""])
+                      "", "## Results", "", *_results_lines(results, config, val), "", "## Use", "", "```python",
+                      *use_snippet(config), "```", ""])
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n{body}")
+
+
+REPO_PLACEHOLDER = "<this repo id or directory>"
+
+
+def use_snippet(config: DecoderConfig) -> list[str]:
+    """The card's "Use" code, lines that run as written once `REPO_PLACEHOLDER` names the checkpoint: a
+    batch of one zero state (and the inputs this policy needs: the task's one-hot token of a multi-task
+    policy, context tokens, camera frames) → one chunk."""
+    tasks = list(config.extra.get("tasks") or [])
+    multi = len(tasks) > 1 and config.context_dim == len(tasks)
+    lines = ["import torch", "", "from action_decoder import ActionDecoderPolicy"]
+    lines += ["from action_decoder.train import task_context"] if multi else []
+    lines += ["", f'policy = ActionDecoderPolicy.from_pretrained("{REPO_PLACEHOLDER}").eval()',
+              f'batch = {{"state": torch.zeros(1, {config.state_dim})}}   # [B, {config.state_dim}]: '
+              f'the robot state, env units']
+    if multi:
+        lines += [f"task = policy.config.extra[\"tasks\"].index({json.dumps(tasks[0])})   # one of the {len(tasks)} "
+                  f"trained tasks",
+                  f"batch.update(task_context(torch.tensor([task]), {len(tasks)}))   # its one-hot token, "
+                  f"context [B, 1, {len(tasks)}]"]
+    elif config.context_dim:
+        lines += [f'batch["context"] = torch.zeros(1, 1, {config.context_dim})   # [B, L, {config.context_dim}]: '
+                  f'your context tokens']
+    if config.cameras:
+        n, size = len(config.cameras), config.image_size
+        lines += [f'batch["images"] = torch.zeros(1, {n}, 3, {size}, {size}, dtype=torch.uint8)   # [B, {n}, 3, '
+                  f'{size}, {size}]: {", ".join(config.cameras)}']
+    if config.uses_vlm_cache:
+        lines += [f'# batch["vlm_key_values"] = the VLM\'s KV cache ({config.vlm_num_layers} layers) and '
+                  f'batch["attention_mask"]']
+    return lines + ['chunk = policy.predict_action_chunk(batch)   # [B, H, D], env units']
 
 
 def _policy_table(config: DecoderConfig, num_parameters: int) -> list[str]:
@@ -173,9 +242,36 @@ def _training_lines(train: dict, tasks: list[str], data: dict) -> list[str]:
             f"weight average {train.get('ema_decay')} |", f"| seed | {train.get('seed')} |"]
 
 
-def _results_lines(results: list[dict]) -> list[str]:
+def _validation_results(val: dict, train: dict) -> list[EvalResult]:
+    """`model-index` entries of the held-out validation (the Hub shows them with the success rates)."""
+    name = hub_dataset_id(train.get("dataset")) or Path(str(train.get("dataset"))).name
+    where = f"held-out episodes {val.get('episodes')} ({val.get('frames')} frames)"
+    return [EvalResult(task_type="robotics", task_name="action chunk prediction", dataset_type="lerobot",
+                       dataset_name=name, metric_type=key, metric_name=label, metric_value=float(val[key]),
+                       metric_config=where)
+            for key, label in (("val_loss", "validation loss"), ("val_action_mse", "validation action MSE"))]
+
+
+def _validation_lines(val: dict) -> list[str]:
+    return ["Held-out validation (`action-decoder train --dataset`: the last episodes of the dataset, never "
+            "trained on):", "", "| held-out episodes | frames | val_loss | val_action_mse |", "|---|---|---|---|",
+            f"| {', '.join(map(str, val.get('episodes') or []))} | {val.get('frames')} | {val['val_loss']:.4f} "
+            f"| {val['val_action_mse']:.4f} |", "",
+            f"`val_loss`: the decoder's training loss on the held-out chunks ({val.get('noise_draws')} noise draws, "
+            f"seed {val.get('seed')}); `val_action_mse`: sampled chunks against the held-out actions, normalised "
+            f"units, padding excluded."]
+
+
+def _results_lines(results: list[dict], config: DecoderConfig, val: Optional[dict] = None) -> list[str]:
+    from .state_layout import METAWORLD_STATE_DIM
+
     if not results:
-        return ["Not measured yet: `action-decoder eval --checkpoint <this directory>` adds a row."]
+        lines = [*_validation_lines(val), ""] if val else []
+        if simulator_policy(config):
+            return lines + ["Not measured yet: `action-decoder eval --checkpoint <this directory>` adds a row."]
+        return lines + [f"Closed-loop success is not measured: `action-decoder eval` runs Meta-World tasks "
+                        f"({METAWORLD_STATE_DIM}-d state, 4-d actions), and this policy was trained on "
+                        f"{trained_on(config)}. Run it in its own environment (see Use)."]
     lines = ["Closed-loop success on layouts disjoint from the demonstrations (`action-decoder eval`):", "",
              "| sampler | K | actions per chunk | episodes per task | seed | success rate | per task | episode cap, delay |",
              "|---|---|---|---|---|---|---|---|"]
@@ -186,10 +282,11 @@ def _results_lines(results: list[dict]) -> list[str]:
     return lines
 
 
-def write_card(directory: Path, config: DecoderConfig, num_parameters: int, results: list[dict]) -> Path:
+def write_card(directory: Path, config: DecoderConfig, num_parameters: int, results: list[dict],
+               digest: Optional[str] = None) -> Path:
     """Write `directory/README.md` atomically (a temporary file, then a rename)."""
     path, tmp = Path(directory) / CARD_NAME, Path(directory) / (CARD_NAME + ".tmp")
-    tmp.write_text(str(build_card(config, num_parameters, results)), encoding="utf-8")
+    tmp.write_text(str(build_card(config, num_parameters, results, digest)), encoding="utf-8")
     os.replace(tmp, path)
     return path
 
@@ -206,4 +303,4 @@ def record_result(directory: Path, policy, summary: dict, tasks: list[str]) -> P
            "rtc": bool(summary["rtc"]), "success_rate": float(summary["success_rate"]),
            "per_task": {k: float(v) for k, v in summary["per_task"].items()}, "weights_sha256": digest}
     results = merge_result(carried_results(read_results(directory), digest), row)
-    return write_card(directory, policy.config, sum(p.numel() for p in policy.parameters()), results)
+    return write_card(directory, policy.config, sum(p.numel() for p in policy.parameters()), results, digest)

@@ -44,12 +44,19 @@ class PolicyOutput:
     float32) and the SDE `chain` [B, K+1, H, D] (normalised) with its `grid` [K+1]."""
 
     loss: Optional[Tensor] = None
+    """Training: the scalar loss to back-propagate."""
     actions: Optional[Tensor] = None
+    """Sampling: [B, H, D] actions in environment units."""
     log_prob: Optional[Tensor] = None
+    """Sampling with log-probs: [B] density of the normalised chunk (the sum of `step_log_probs`)."""
     step_log_probs: Optional[Tensor] = None
+    """Sampling with log-probs: [B, K] the log-density of each SDE step."""
     chain: Optional[Tensor] = None
+    """SDE sampling with log-probs: [B, K+1, H, D] the chain's states, normalised, from noise to chunk."""
     grid: Optional[Tensor] = None
+    """SDE sampling with log-probs: [K+1] the chain's times, from 0 (noise) to 1 (data)."""
     metrics: dict = field(default_factory=dict)
+    """Training: values to log (floats)."""
 
 
 @dataclass
@@ -79,15 +86,18 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         if not isinstance(config, DecoderConfig):
             raise ValueError(f"config: expected a DecoderConfig, got {type(config).__name__}")
         self.config = config
+        """The `DecoderConfig` (saved as config.json)."""
         self.model = ActionExpert(config, load_pretrained)
+        """The Action Expert network (`expert.ActionExpert`)."""
         self.normalizers = make_normalizers(config.state_dim, config.action_dim,
                                             config.normalization_mode, stats, config.action_constant_below)
-        # The noise schedule is a submodule so that a learnable σ is a policy parameter.
+        """"state" and "actions" normalisers (`normalize.Normalizer`), their statistics saved with the weights."""
         self.sigma = make_sigma(config)
-        # The initial-noise policy of a noise-space fine-tuned checkpoint (`finetune --algo dsrl`).
+        """The SDE's noise schedule σ(t), a submodule so that a learnable σ is a policy parameter."""
         self.noise_actor = NoiseActor(config.state_dim, config.context_dim, config.action_chunk_size,
                                       config.action_dim, config.noise_actor_hidden, config.noise_actor_bound) \
             if config.noise_actor_hidden else None
+        """The initial-noise policy of a noise-space fine-tuned checkpoint (`finetune --algo dsrl`), or None."""
         self._queue: deque = deque()
         self._warned_proxy = self._warned_steps = False
 
@@ -243,6 +253,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
+        """The decoder's training loss on `batch` ("state", "actions" [B, H, D] in environment units, and
+        its conditioning); times and noise drawn from `generator`. `PolicyOutput.loss` and `.metrics`."""
         self._validate(batch, need_actions=True)
         if generator is not None and not isinstance(generator, torch.Generator):
             raise ValueError(f"generator: the loss draws its times and noise from one torch.Generator (or None), "
@@ -522,7 +534,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         default the directory's name; returns the commit's url). The card keeps the measured results
         of these exact weights (from the checkpoint this policy was loaded from, or already in the
         directory); results of other weights are dropped."""
-        from safetensors.torch import save_file
+        from safetensors.torch import save as tensors_to_bytes
 
         if config is not None and config is not self.config:
             raise ValueError(f"config: the policy saves its own DecoderConfig (policy.config); got {type(config).__name__}")
@@ -533,18 +545,35 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         path.mkdir(parents=True, exist_ok=True)
         self.config.to_json(path / CONFIG_NAME)
         tensors = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        # Serialised in memory and written by Python, so the file gets the umask's mode like the others
+        # (safetensors' own save_file creates it 0600); a temporary name and a rename keep it atomic.
         tmp = path / (WEIGHTS_NAME + ".tmp")
-        save_file(tensors, str(tmp), metadata={"format": "pt", "library": "action_decoder"})
+        tmp.write_bytes(tensors_to_bytes(tensors, metadata={"format": "pt", "library": "action_decoder"}))
         tmp.replace(path / WEIGHTS_NAME)
         known = getattr(self, "_card_results", []) + model_card.read_results(path)
+        digest = model_card.weights_digest(tensors)
         results = []
-        if known:
-            for row in model_card.carried_results(known, model_card.weights_digest(tensors)):
-                results = model_card.merge_result(results, row)
-        model_card.write_card(path, self.config, sum(p.numel() for p in self.parameters()), results)
+        for row in model_card.carried_results(known, digest):
+            results = model_card.merge_result(results, row)
+        model_card.write_card(path, self.config, sum(p.numel() for p in self.parameters()), results, digest)
         if push_to_hub:
             return self.push_to_hub(repo_id or path.name, **push_to_hub_kwargs)
         return None
+
+    def push_to_hub(self, repo_id: str, **kwargs) -> str:
+        """Upload `save_pretrained`'s files to the Hub repo `repo_id` (`PyTorchModelHubMixin.push_to_hub`'s
+        arguments: `token`, `private`, `branch`, `commit_message`...; returns the commit's url). A Hub that
+        cannot be reached or refuses the upload (offline, `HF_HUB_OFFLINE=1`, no token, no access) is
+        one ValueError line."""
+        try:
+            return super().push_to_hub(repo_id, **kwargs)
+        except TypeError:           # a wrong argument is the caller's, not the Hub's
+            raise
+        except Exception as err:    # offline, refused, unreachable: huggingface_hub and httpx raise many kinds
+            why = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise ValueError(f"push_to_hub: could not upload to the Hub repo {repo_id!r} ({type(err).__name__}: "
+                             f"{why}); check the connection, HF_HUB_OFFLINE and the token (huggingface-cli "
+                             f"login), or keep the directory save_pretrained writes") from None
 
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path: str | Path, map_location: str | torch.device = "cpu", *,
@@ -587,9 +616,24 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 HUB_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 
 
-def _checkpoint_dir(name: str | Path, **hub) -> Path:
-    """A local checkpoint directory, or the snapshot of the Hub repo `name` names (`owner/name`)."""
+def follow_last(name: str | Path) -> Path:
+    """`name` as a path, or the `step_N` directory a run's `checkpoints/last` pointer file names."""
     path = Path(name).expanduser()
+    if path.is_file() and path.name == "last":
+        target = path.parent / path.read_text(errors="replace").strip()
+        if target.name.startswith("step_") and target.is_dir():
+            return target
+    return path
+
+
+def _checkpoint_dir(name: str | Path, **hub) -> Path:
+    """A local checkpoint directory, or the snapshot of the Hub repo `name` names (`owner/name`). A run's
+    `checkpoints/last` pointer (a file naming the newest `step_N`) is followed to that directory; another
+    file is refused in one line."""
+    path = follow_last(name)
+    if path.is_file():
+        raise ValueError(f"checkpoint: {path} is a file; expected a directory written by save_pretrained "
+                         f"({CONFIG_NAME} + {WEIGHTS_NAME}), e.g. a run's final/ or checkpoints/step_N")
     if path.exists() or not HUB_REPO_ID.match(str(name)):
         return path
     from huggingface_hub import snapshot_download

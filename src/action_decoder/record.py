@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -32,6 +33,20 @@ class RecordConfig:
     """Rendered frames are image_size × image_size pixels."""
 
 
+def check_writable(out: Path, option: str = "--output-dir") -> None:
+    """Refuse, in one line naming `option`, a place where the dataset cannot be written (a read-only
+    directory, a file on the way), before any demonstration is recorded; creates nothing."""
+    where = out.expanduser().absolute()
+    while not where.exists():
+        where = where.parent
+    try:
+        with tempfile.TemporaryFile(dir=where):
+            pass
+    except OSError as err:
+        raise ValueError(f"{option}: cannot write the dataset to {out} ({where}: {err.strerror}); choose a "
+                         f"writable --output-dir") from None
+
+
 def run_record(cfg: RecordConfig) -> Path:
     """Record ``cfg.demos`` demonstrations per task into ``cfg.output_dir``; prints one summary line."""
     from .data.demos import record_demos
@@ -43,6 +58,7 @@ def run_record(cfg: RecordConfig) -> Path:
     if not cfg.cameras and cfg.image_size != RecordConfig.image_size:
         raise ValueError(f"--image-size: sizes the frames of --cameras, which was not given (got "
                          f"--image-size {cfg.image_size}); add --cameras corner2 (or others) or drop it")
+    check_writable(Path(cfg.output_dir))
     root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
                         image_size=cfg.image_size)
     info = json.loads((root / "meta" / "info.json").read_text())

@@ -199,12 +199,15 @@ def run_dir_lock(out: Path, option: str = "--output-dir"):
     A second run on the same directory fails at once with one line naming the holder's pid,
     instead of both writing checkpoints into it. The kernel drops the lock when its process
     ends, killed or not, so a lock file left behind never blocks a later run. `out` must be a
-    directory or not exist yet; anything else is refused before any work starts."""
+    directory or not exist yet; anything else is refused before any work starts. A run that ends in an
+    error (a refused option, a missing dataset) before writing anything takes back the lock file, and
+    the directory when it made it: no directory is left holding only `.lock`."""
     import fcntl
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{option}: expected a directory (new or from an earlier run), got the file {out}")
+    made_dir, made_lock = not out.exists(), not (out / LOCK).exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
@@ -221,6 +224,13 @@ def run_dir_lock(out: Path, option: str = "--output-dir"):
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
         yield out
+    except BaseException:
+        if made_lock and [p.name for p in out.iterdir()] == [LOCK]:     # nothing written but the lock
+            with contextlib.suppress(OSError):
+                (out / LOCK).unlink()                                   # while still held
+                if made_dir:
+                    out.rmdir()
+        raise
     finally:
         os.close(fd)
 

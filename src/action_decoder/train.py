@@ -23,6 +23,7 @@ import torch
 from torch.utils.data import default_collate
 
 from .config import DecoderConfig
+from .model_card import weights_digest
 from .policy import ActionDecoderPolicy
 from .run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, _writing, existing_run, resume_checkpoint,
                       run_dir_lock, save_final, write_checkpoint)
@@ -36,106 +37,95 @@ class TrainConfig:
     """Train a decoder on Meta-World demonstrations (or any LeRobot-layout dataset), then evaluate."""
 
     task: str = "metaworld/push"
-    """Meta-World task(s): a name, a comma-separated list, or a group (MT10, medium, hard, very_hard)."""
+    """Meta-World task(s): a name, a comma-separated list, or a group (MT10, easy, medium, hard, very_hard)."""
     dataset: Optional[str] = None
-    """Train on this LeRobot-layout dataset directory instead of generating demonstrations."""
+    """A LeRobot dataset directory to train on instead of generated demonstrations (None: generate them)."""
     cameras: Optional[list[str]] = None
-    """Camera observations: with --dataset, its camera feature keys (e.g. observation.images.top;
-    None: all of them); with generated Meta-World demonstrations, Meta-World cameras to render
-    (e.g. corner2; None: none)."""
+    """Cameras: a --dataset's camera keys (None: all), or Meta-World cameras to render (None: none)."""
     image_size: int = 64
-    """Camera frames are resized to image_size × image_size pixels (rendered at that size on Meta-World)."""
+    """Side of the square camera frames, in pixels."""
     decoder: Literal["DDPM", "flow_matching", "mean_flow"] = "flow_matching"
-    """flow_matching (sampled with 10 Euler steps) is the default: at this command's own budget
-    (1500 steps, 10 demonstrations) it reached about 63 % success on five hard Meta-World tasks
-    where MeanFlow with 1-step sampling reached about 40 %."""
+    """The decoder to train (flow_matching: 10 Euler steps; docs/guides/getting_started.md compares them)."""
     steps: int = 1500
     """Optimizer steps."""
     demos: int = 10
     """Expert demonstrations per task."""
     demo_noise: float = 0.0
-    """Std of the Gaussian added to the expert's executed actions while recording demonstrations
-    (DART: the recorded actions stay clean, and chunk targets are the expert's own continuation
-    from each state). 0: plain expert rollouts."""
+    """Std of the noise added to the expert's executed actions while recording (DART; 0: none)."""
     output_dir: str = "outputs/train"
+    """Directory of the run: checkpoints/, final/, logs (new, or an earlier run's with --resume)."""
     seed: int = 0
-    """Seeds the network and the data order, and picks the demonstrations: seed s records Meta-World
-    layouts s·1000, s·1000 + 1, … (0 ≤ s < 500), so seeds train on disjoint demonstrations."""
+    """Seed of the network, the data order and the demonstrations (layouts s·1000 + j; 0 <= s < 500)."""
     batch_size: int = 128
-    """Global batch size (split across processes)."""
+    """Global batch size, split across processes."""
     lr: float = 1e-3
-    """Peak learning rate of AdamW: reached at the end of the warm-up, then a cosine towards 0 at the last step."""
+    """Peak AdamW learning rate, reached after the warm-up, then a cosine towards 0."""
     weight_decay: float = 1e-4
+    """AdamW weight decay."""
     warmup_steps: int = 100
-    """Steps of linear warm-up from lr/warmup_steps to lr."""
+    """Steps of linear learning-rate warm-up."""
     grad_clip: float = 1.0
-    """Clip of the gradient norm (the logged grad_norm is before clipping)."""
+    """Largest gradient norm; larger ones are clipped (grad_norm is logged before clipping)."""
     ema_decay: float = 0.999
-    """Ceiling of the decay of the weight average that `final/` holds (0: the raw weights); warmed
-    up as 1 − (1 + n)^(−3/4) so that the random initial weights fade within the first steps."""
+    """Ceiling of the decay of the weight average that final/ holds (0: the raw weights)."""
     state_layout: Literal["auto", "flat", "metaworld", "metaworld_proprio"] = "auto"
-    """What the state vector is (auto: flat for --dataset; for Meta-World tasks metaworld, or
-    metaworld_proprio with cameras). With metaworld the policy appends relative positions and
-    training shifts layouts; with metaworld_proprio it reads only the hand position and gripper
-    (the first 4 of 39 entries), so where objects and goal are must come from the cameras
-    (state_layout.py)."""
+    """What the state is (auto: flat with --dataset; metaworld, or metaworld_proprio with cameras)."""
     image_encoder: Literal["conv", "resnet18"] = "conv"
-    """Camera policies: the backbone (conv: small, for CPU runs; resnet18: transformers' ResNet-18
-    with GroupNorm, needs the [vlm] extra)."""
+    """Camera backbone: conv (small, for CPUs) or resnet18 (transformers' ResNet-18; the [vlm] extra)."""
     image_encoder_pretrained: Optional[str] = None
-    """Camera policies, resnet18: a local directory or Hub id of pretrained ResNet-18 weights."""
+    """resnet18: a local directory or Hub id of pretrained ResNet-18 weights (None: random)."""
     freeze_image_encoder: bool = False
-    """Camera policies: keep the backbone's weights fixed (the token projection trains)."""
+    """Keep the camera backbone's weights fixed (the token projection trains)."""
     image_tokens: int = DecoderConfig.image_tokens_per_camera
-    """Camera policies: context tokens per camera (cells of the pooled feature map)."""
+    """Context tokens per camera (cells of the pooled feature map)."""
     image_shift: int = DecoderConfig.image_shift
-    """Camera policies: largest random shift of a training frame, in pixels (0: none)."""
+    """Largest random shift of a training frame, in pixels (0: none)."""
     augment_shift: Optional[float] = None
-    """Largest horizontal shift, in metres, of the whole scene per training sample (None: 0.05 with
-    the metaworld layout, 0 with flat; needs the metaworld layout)."""
+    """Largest horizontal shift of the scene per sample, in metres (None: 0.05 with metaworld, else 0)."""
     horizon: int = 16
-    """Action chunk length H."""
+    """Action chunk length H, in control steps."""
     n_action_steps: int = DecoderConfig.n_action_steps
     """Actions executed from each chunk before re-planning (stored in the checkpoint)."""
     inference_steps: int = 0
     """Sampling steps K (0: the decoder's default: DDPM 10, flow matching 10, MeanFlow 1)."""
     hidden_size: int = 96
+    """Width of the Action Expert transformer."""
     num_layers: int = 3
+    """Transformer layers."""
     num_heads: int = 4
+    """Attention heads."""
     num_kv_heads: int = 2
+    """Key/value heads (grouped-query attention; a divisor of --num-heads)."""
     prediction_type: Literal["epsilon", "sample"] = "sample"
-    """DDPM's target."""
+    """DDPM's target: epsilon (the noise) or sample (the clean chunk)."""
     meanflow_ratio_r_neq_t: float = 0.25
-    """MeanFlow: fraction of (t, r) pairs with r ≠ t."""
+    """MeanFlow: fraction of (t, r) pairs with r != t."""
     meanflow_adaptive_p: float = 0.5
-    """MeanFlow: adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
+    """MeanFlow: power p of the adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     meanflow_time_dist: Literal["uniform", "logit_normal"] = "uniform"
-    """MeanFlow: distribution of (t, r); uniform covers the whole interval that 1-step sampling uses."""
+    """MeanFlow: distribution of the times (t, r)."""
     meanflow_target: Literal["identity", "split"] = "identity"
-    """MeanFlow: the r ≠ t rows' target, the MeanFlow identity (du/dt) or interval consistency
-    ("split", `flows.losses.meanflow_loss`)."""
+    """MeanFlow: target of the r != t rows, the MeanFlow identity or interval consistency (split)."""
     flow_prediction: Optional[Literal["velocity", "sample"]] = None
-    """FM/MeanFlow head: the velocity, or the clean chunk it aims at. None: the clean chunk for
-    MeanFlow (1-step success 75.2 → 78.2 % on 8 hard tasks), the velocity for FM (GO-1's head)."""
+    """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     checkpoint_every: int = 500
+    """Steps between resumable checkpoints."""
     log_every: int = 25
+    """Steps per logged row (loss, lr, grad_norm)."""
     resume: bool = False
-    """Continue from the last checkpoint in output_dir (same optimizer and RNG state)."""
+    """Continue from the last checkpoint in --output-dir (same optimizer and RNG state)."""
     eval_episodes: int = 20
-    """Closed-loop episodes after training (0: skip): on Meta-World tasks, and on a --dataset whose
-    meta/info.json names "env": "metaworld" (what `action-decoder record` writes)."""
+    """Closed-loop episodes per task after training, on Meta-World tasks (0: skip)."""
     val_fraction: float = 0.1
-    """Share of a --dataset's episodes held out for validation when the dataset names no environment
-    the library can run: the last ones, at least 1, only when it has >= 2 episodes (0: train on all).
-    Training never sees them; their validation loss and sampled-chunk MSE go to train_log.json."""
+    """Share of a --dataset's episodes held out for validation, the last ones (0: none)."""
     device: str = "auto"
-    """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another available torch device."""
+    """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another torch device."""
     progress: bool = True
-    """A progress bar on stderr, shown only when stderr is a terminal."""
+    """A progress bar on stderr when stderr is a terminal."""
     wandb: bool = False
-    """Also log to Weights & Biases (pip install "action-decoder[wandb]"; WANDB_MODE=offline works without
-    an account). TensorBoard events and train_log.jsonl are always written to the output directory."""
+    """Also log to Weights & Biases (the [wandb] extra); TensorBoard and JSONL logs are always written."""
     wandb_project: str = "action-decoder"
+    """Weights & Biases project name."""
 
 
 DEFAULT_STEPS = {"DDPM": 10, "flow_matching": 10, "mean_flow": 1}
@@ -568,6 +558,10 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     out = Path(cfg.output_dir)
     main = rank == 0
     shift = augment_shift(cfg)
+    if cfg.dataset is not None:
+        from .data.lerobot_format import check_dataset_dir
+
+        check_dataset_dir(cfg.dataset, "--dataset")
     resumed = _resume(cfg, out, device, main)
     ds, tasks, val = load_training_data(cfg, quiet=not main)
     dconf = decoder_config(cfg, ds.dataset.states.shape[1], ds.dataset.actions.shape[1], tasks,
@@ -625,7 +619,7 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     logger = RunLogger(out, "train_log.jsonl", start, cfg.wandb_project if cfg.wandb else None, "train",
                        asdict(cfg)) if main else None
     policy.train()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     # The steps since the last log row (a resumed run continues the window its checkpoint kept).
     running = [torch.tensor(x, device=device) for x in window["losses"]] if resumed is not None else []
     grad_norms = [torch.tensor(x, device=device) for x in window["grad_norms"]] if resumed is not None else []
@@ -676,10 +670,14 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     final = out / FINAL
     if main:
         trained = policy if ema is None else ema.module
-        save_final(out, trained, cfg.steps)
         log = {"config": asdict(cfg), "history": history}
         if val is not None:
             log["validation"] = validation_metrics(trained, val, len(tasks), device)
+            # Kept with the weights it measured, for the model card (`model_card.validation_of`).
+            trained.config.extra["validation"] = {**log["validation"],
+                                                  "weights_sha256": weights_digest(trained.state_dict())}
+        save_final(out, trained, cfg.steps)
+        if val is not None:
             print(f"validation on held-out episodes {log['validation']['episodes']}: "
                   f"val_loss={log['validation']['val_loss']:.4f} "
                   f"val_action_mse={log['validation']['val_action_mse']:.4f}", flush=True)
@@ -691,7 +689,9 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
             if history:
                 plot_losses(history, out / "loss.png",
                             f"{cfg.decoder} on {cfg.task if cfg.dataset is None else cfg.dataset}")
-        print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training)", flush=True)
+        # Wall time, then this process's CPU time (every thread): the README and guides quote the CPU time.
+        print(f"saved {final} ({time.perf_counter() - t0:.0f} s of training, {time.process_time() - cpu0:.0f} s CPU)",
+              flush=True)
     if world > 1:
         torch.distributed.barrier()
         # Free DDP's reducer (it holds the last gloo work) while the interpreter is alive: a

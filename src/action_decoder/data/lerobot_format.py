@@ -78,6 +78,17 @@ V2, V3 = ("v2.0", "v2.1"), ("v3.0",)
 CAMERA_DTYPES = ("video", "image")
 
 
+def check_dataset_dir(root: str | Path, field: str = "load_dataset") -> None:
+    """Refuse, naming `field`, a path that is missing or a file: a dataset is a directory."""
+    root = Path(root).expanduser()
+    if not root.exists():
+        raise ValueError(f"{field}: {root} does not exist; expected a LeRobot dataset directory (meta/info.json "
+                         f"and data/*.parquet)")
+    if not root.is_dir():
+        raise ValueError(f"{field}: {root} is a file; expected a LeRobot dataset directory (meta/info.json and "
+                         f"data/*.parquet), e.g. the directory that holds it")
+
+
 def read_info(root: str | Path) -> dict:
     """``meta/info.json`` of a dataset ({} when the file is absent)."""
     path = Path(root).expanduser() / "meta" / "info.json"
@@ -269,6 +280,7 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
     statistics to the same mean and std).
     """
     root = Path(root).expanduser()
+    check_dataset_dir(root)
     info = read_info(root)
     version = info.get("codebase_version", "v2.0")
     if version not in V2 + V3:

@@ -138,17 +138,20 @@ class ImageEncoder(nn.Module):
     def __init__(self, config: DecoderConfig, load_pretrained: bool = True) -> None:
         super().__init__()
         self.num_cameras, self.shift = len(config.cameras), config.image_shift
-        if config.image_encoder == "conv":
-            self.backbone = ConvBackbone()
-        else:
-            self.backbone = ResNet18Backbone(config.image_encoder_pretrained, load_pretrained)
+        self.backbone = ConvBackbone() if config.image_encoder == "conv" else \
+            ResNet18Backbone(config.image_encoder_pretrained, load_pretrained)
+        """The CNN: frames [B·N, 3, S, S] → feature maps [B·N, C, h, w] (conv or ResNet-18, GroupNorm)."""
         if config.freeze_image_encoder:
             self.backbone.requires_grad_(False)
         self.grid = token_grid(config.image_tokens_per_camera)
+        """(rows, columns) of the pooled feature map: one token per cell (`token_grid`)."""
         hidden = config.hidden_size
         self.proj = nn.Linear(self.backbone.out_channels, hidden)
+        """Projection of each cell's C features to the expert's hidden size."""
         self.cell_embed = nn.Parameter(torch.randn(config.image_tokens_per_camera, hidden) * 0.02)
+        """[T, hidden]: learned embedding of each cell's position."""
         self.camera_embed = nn.Parameter(torch.randn(self.num_cameras, hidden) * 0.02)
+        """[N_cam, hidden]: learned embedding of each camera."""
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -162,6 +165,7 @@ class ImageEncoder(nn.Module):
         return ((x - self.mean) / self.std).to(self.proj.weight.dtype)
 
     def forward(self, images: Tensor) -> Tensor:
+        """[B, N_cam, 3, S, S] frames (uint8, or float in [0, 1]) → [B, N_cam·T, hidden] context tokens."""
         b, n = images.shape[:2]
         feats = self.backbone(self.pixels(images))                                   # [B·N, C, h, w]
         cells = F.adaptive_avg_pool2d(feats, self.grid).flatten(2).transpose(1, 2)   # [B·N, T, C]

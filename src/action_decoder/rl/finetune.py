@@ -28,7 +28,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from ..evaluate import make_policy_fn
+from ..evaluate import check_simulator_policy, make_policy_fn
 from ..model_card import weights_digest
 from ..noise_actor import kl_to_prior
 from ..policy import ActionDecoderPolicy
@@ -73,126 +73,111 @@ class FinetuneConfig:
     checkpoint: str
     """A `save_pretrained` directory of a BC policy (e.g. outputs/train/final); PPO and SAC need flow_matching or mean_flow."""
     output_dir: str = "outputs/finetune"
+    """Directory of the run: checkpoints/, final/, logs (new, or an earlier run's with --resume)."""
     algo: Literal["ppo", "sac", "dsrl"] = "ppo"
-    """"ppo" or "sac": the decoder's weights through its SDE chain; "dsrl": a noise actor steering the frozen decoder."""
+    """RL algorithm: ppo or sac train the decoder through its SDE chain; dsrl trains a noise actor that steers the frozen decoder."""
     task: Optional[str] = None
     """Task to fine-tune on (default: the checkpoint's task; required for multi-task checkpoints)."""
     env_steps: int = 100_000
     """Environment steps to collect (the run stops at the first iteration boundary past it)."""
     max_cpu_minutes: float = 0.0
-    """Also stop once this much CPU time of fine-tuning is spent, between two updates or before a rollout it cannot pay for (0: no limit)."""
+    """Budget in CPU minutes of fine-tuning (0: none)."""
     num_envs: Optional[int] = None
-    """Lockstep envs; each iteration runs one episode on each (default 32; 8 with DSRL)."""
+    """Lockstep envs; each iteration runs one episode on each (default 32; 8 with dsrl)."""
     group_size: Optional[int] = None
-    """PPO: episodes per training layout (default 4). Above 1, advantages are GRPO-style (each decision's
-    reward-to-go against the other episodes of its layout, see `ppo.group_advantages`) instead of
-    the critic's GAE (1). On 3-demo reach the return varies 3–4× between layouts and by a few %
-    between episodes of one layout: the critic's error swamped that signal (no learning), the
-    group comparison isolates it. SAC plays one layout per env and refuses the option."""
+    """PPO: episodes per training layout; above 1, GRPO-style group advantages (None: 4)."""
     max_episode_steps: int = 200
-    """Length cap of the training episodes in env steps (BC successes come within ~50–150 steps;
-    longer episodes cost env steps without a new signal). Evaluation always runs 500."""
+    """Episode cap of the training episodes, in env steps (evaluation runs 500)."""
     seed: int = 0
+    """Seed of the training layouts, the SDE noise and the networks."""
     sde_steps: int = 10
     """Denoising steps K of the SDE chain (also for MeanFlow, whose 1-step ODE has no density)."""
     sigma_schedule: Literal["explore", "fixed"] = "fixed"
-    """σ(t): "fixed" = a at every t; "explore" = a·√((1 − t)/max(t, 0.1)) (Flow-GRPO). On a 3-demo
-    reach policy, fixed a = 0.5 gives executed actions 3× the variance of explore a = 1 (whose
-    exploration is 0.02–0.04 in env units) and no step with a much sharper density than the others."""
+    """σ(t): fixed (a at every t) or explore (a·√((1 − t)/max(t, 0.1)), Flow-GRPO)."""
     sigma: float = 0.25
-    """Scale a of the σ(t) schedule. The exploring policy must still succeed where the BC policy
-    does: on 3-demo door-lock (BC 44 % with the ODE) the SDE succeeds in 16 % of episodes at
-    a = 0.5 and 38 % at a = 0.25, and PPO learnt nothing at 0.5 in 160k env steps (evaluation
-    15 → 10 %) against 25 → 60 % (SDE) / 75 % (ODE) at 0.25 in 64k (docs/benchmarks/rl_finetune.md)."""
+    """Scale a of the σ(t) schedule, in normalised action units."""
     learn_sigma: bool = True
     """Learn a multiplier of σ(t) (starts at 1)."""
     lr: float = 1e-4
-    """Velocity network learning rate (3e-4 jumps by several nats of KL in one step; 3e-5 barely moves);
-    with `--lr-schedule adaptive`, the starting value."""
+    """Learning rate of the velocity network (with --lr-schedule adaptive: its start)."""
     lr_schedule: Literal["adaptive", "fixed"] = "fixed"
-    """PPO: "adaptive" divides the velocity network's learning rate by 1.5 after a minibatch update
-    that takes the policy beyond 2 × `target_kl` from the rollout policy and multiplies it by 1.5
-    below `target_kl` / 2 (within [lr / 100, lr × 10]); "fixed" keeps `lr`."""
+    """PPO: fixed, or adaptive (divided or multiplied by 1.5 to keep the KL near --target-kl)."""
     lr_warmup_updates: int = 0
-    """PPO, fixed schedule: the velocity network's learning rate rises linearly from lr / N to lr over
-    its first N updates (0: none). At lr 1e-4 the first update moves the policy 0.3–0.8 nats per
-    credited step from the rollout policy (approximate KL; target 0.05) on Meta-World; N = 20 takes
-    that to 0.002–0.003 but gained no more on door-lock (docs/benchmarks/rl_finetune_screen.md)."""
+    """PPO, fixed schedule: updates of linear learning-rate warm-up (0: none)."""
     sigma_lr: float = 3e-3
+    """Learning rate of the σ multiplier."""
     critic_lr: Optional[float] = None
-    """Learning rate of the value head or the twin Q (default 1e-3; 3e-4 with DSRL)."""
+    """Learning rate of the critic (default 1e-3; 3e-4 with dsrl)."""
     gamma: float = 0.99
     """Discount per decision (one chunk)."""
     gae_lambda: float = 0.95
+    """λ of GAE (PPO with the critic)."""
     reward: Literal["dense", "success"] = "dense"
-    """"dense": the env's reward averaged over the chunk's steps / 10 ∈ [0, 1], episodes running past
-    success to `max_episode_steps` (the protocol of Meta-World's RL baselines: its rewards are largest
-    in the success region). "success": `success_reward` on the decision that succeeds, where the
-    episode ends, plus `shaping_scale` potential-based shaping."""
+    """dense: the env's reward per chunk / 10; success: --success-reward at success, plus shaping."""
     success_reward: float = 1.0
     """`--reward success`: reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
-    """`--reward success`: weight k of potential-based shaping k·(γ·Φ(s′) − Φ(s)), Φ = the env's dense reward / 10 ∈ [0, 1],
-    Φ = 0 at the start, after success and at the training cap (`shaping`): over an episode it sums to 0,
-    so it guides credit assignment without changing the optimal policy (0: success only). Keep k
-    below `success_reward`: each decision's shaping is up to k, which the critic must average out."""
+    """Weight k of the potential-based shaping k·(γ·Φ(s') − Φ(s)) of --reward success (0: none)."""
     logprob_reduce: Literal["sum", "mean"] = "sum"
     """PPO: per-step log-prob of the chunk summed over H×D (true density) or averaged (Flow-GRPO; the KLs are then per element)."""
     trained_steps: int = 10
-    """The last N denoising steps enter the PPO/KL objective. Their noise is what moves the executed
-    actions: on a 3-demo reach policy the last 5 of 10 steps carry 97 % of the executed-action
-    variance and the last one 71 %, while the first 5 carry 5 % (the velocity field contracts early
-    noise back onto the data), so crediting early steps gives PPO almost no signal."""
+    """The last N denoising steps enter the PPO/KL objective."""
     clip_eps: float = 0.2
+    """PPO's ratio clip ε."""
     ppo_epochs: int = 4
+    """PPO epochs per iteration."""
     minibatch_size: int = 512
+    """PPO minibatch size, in decisions."""
     target_kl: float = 0.05
     """PPO: stop an iteration's epochs when the approximate KL to the rollout policy exceeds 1.5×this."""
     vf_coef: float = 0.5
+    """PPO: weight of the value loss."""
     kl_coef: float = 0.0
     """Weight of KL(π_θ ‖ π_BC) on the chains; DSRL: of the noise actor's KL to N(0, I) per element (0: off)."""
     critic_warmup_iters: Optional[int] = None
-    """PPO with the critic (`--group-size 1`): first iterations train only the value head (default 1).
-    Group advantages do not use the value head, so with `--group-size` above 1 the policy updates
-    from the first iteration and this option is refused."""
+    """PPO with the critic (--group-size 1): iterations that train only the value head (None: 1)."""
     ratio_tol: float = 1e-4
     """PPO: tolerated |ratio − 1| before the first update of an iteration, on top of float rounding (`ppo.rescore_rounding`)."""
     alpha: float = 0.01
     """SAC: initial entropy weight α (log-probs per action dimension)."""
     alpha_lr: float = 3e-2
-    """SAC: learning rate of log α, tuned to hold the entropy at `target_entropy` (0: α fixed). It
-    must outpace σ's drift under the entropy term (Adam moves log σ by up to `sigma_lr` per update)."""
+    """SAC: learning rate of log α (0: α fixed)."""
     target_entropy: Optional[float] = None
-    """SAC: entropy per action dimension that α holds (default: the initial policy's, so exploration
-    stays where `--sigma` puts it); DSRL: per noise element (default 0)."""
+    """SAC: entropy per action dimension that α holds (None: the initial policy's); dsrl: per noise element (None: 0)."""
     tau: float = 0.005
+    """SAC: rate of the target critics' moving average."""
     sac_batch_size: int = 128
+    """SAC batch size, in transitions."""
     sac_updates_per_decision: Optional[float] = None
-    """SAC and DSRL: gradient steps per stored decision (default 0.5 with SAC, 2 with DSRL)."""
+    """SAC and dsrl updates per collected decision (default 0.5; 2 with dsrl)."""
     steps: Optional[int] = None
-    """DSRL: the frozen decoder's sampling steps (default: the checkpoint's num_inference_timesteps)."""
+    """dsrl: sampling steps of the frozen decoder (default: the checkpoint's)."""
     noise_critic: Literal["noise", "action"] = "noise"
-    """DSRL: Q on the noise (DSRL-SAC) or on the executed actions with noise aliasing (DSRL-NA)."""
+    """dsrl: Q on the noise (DSRL-SAC) or on the executed actions with noise aliasing (DSRL-NA)."""
     noise_hidden: int = 256
-    """DSRL: width of the noise actor's two hidden layers."""
+    """dsrl: width of the noise actor's two hidden layers."""
     noise_bound: float = 2.5
-    """DSRL: the actor's noise lies in (−b, b) per element."""
+    """dsrl: bound b of the actor's noise, per element, in (−b, b)."""
     noise_lr: float = 3e-4
-    """DSRL: learning rate of the noise actor."""
+    """dsrl: learning rate of the noise actor."""
     buffer_size: int = 100_000
+    """SAC replay buffer size, in transitions."""
     grad_clip: float = 1.0
+    """Largest gradient norm; larger ones are clipped."""
     eval_episodes: int = 20
     """Closed-loop evaluation episodes (eval layouts) before, every `eval_every` iterations, and after (0: none)."""
     eval_every: int = 0
+    """Iterations between evaluations (0: only before and after)."""
     checkpoint_every: int = 5
     """Iterations between resumable checkpoints."""
     checkpoint_minutes: float = 10.0
     """SAC: also checkpoint inside an iteration once this many CPU minutes passed since the last checkpoint (0: off)."""
     resume: bool = False
+    """Continue from the last checkpoint in --output-dir."""
     wandb: bool = False
-    """Also log to Weights & Biases (pip install "action-decoder[wandb]"). TensorBoard events and
-    finetune_log.jsonl are always written to the output directory, per iteration, at its env steps."""
+    """Also log to Weights & Biases (the [wandb] extra); TensorBoard and JSONL logs are always written."""
     wandb_project: str = "action-decoder"
+    """Weights & Biases project name."""
 
 
 BEST, BEST_EVAL = "best", "best_eval.json"
@@ -436,9 +421,9 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
     out = Path(cfg.output_dir)
     bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
     trained = list(bc.config.extra.get("tasks") or [])
-    task, task_index = _resolve_task(cfg, trained)
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
+    # The decoder (DDPM refused, except for dsrl), then the simulator, then the task: each refusal is the one that applies.
     dsrl = cfg.algo == "dsrl"
     if dsrl:
         policy = dsrl_policy(bc, cfg.noise_hidden, cfg.noise_bound, cfg.steps, {"finetune": asdict(cfg)})
@@ -447,6 +432,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         policy = finetune_policy(bc, cfg.sigma, cfg.learn_sigma, cfg.sde_steps, cfg.sigma_schedule,
                                  {"finetune": asdict(cfg)}, squash=cfg.algo == "sac")
         reference = finetune_policy(bc, cfg.sigma, False, cfg.sde_steps, cfg.sigma_schedule).requires_grad_(False)
+    check_simulator_policy(bc, cfg.checkpoint, cfg.task, "finetune")
+    task, task_index = _resolve_task(cfg, trained)
     state_dim, n_exec = policy.config.state_dim, policy.config.n_action_steps
     sigma_params = list(policy.sigma.parameters())
     groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
