@@ -39,7 +39,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 6
+CONFIG_FORMAT_VERSION = 7
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -49,6 +49,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
+    7: {"clip_actions": False},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -169,6 +170,12 @@ class DecoderConfig:
     # SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
     # Format-5 files, older than the field, read as False.
     action_squash: bool = False
+    # Clamp every sampled chunk, in environment units, to the per-dimension [min, max] of the action
+    # statistics the policy was built with (the training data's range; no statistics: no clamp), so a
+    # robot with hard limits never receives an action its demonstrations never reached. With
+    # `action_squash` the tanh bounds the chunk instead (to (−1, 1), the env's box). Format-6 files,
+    # older than the field, read as False.
+    clip_actions: bool = True
     state_layout: str = "flat"   # "metaworld": relative positions appended; "metaworld_proprio": the hand
                                  # and gripper only, for camera policies (state_layout.py)
     default_ctrl_freq: float = 10.0
@@ -235,7 +242,7 @@ class DecoderConfig:
             raise ValueError("vlm_num_layers, vlm_head_dim, vlm_num_key_value_heads: expected all "
                              f"three set or all None, got {vlm}")
         for name in ("clip_sample", "flow_sde_use", "flow_sde_learn_sigma", "flow_sde_return_logprob",
-                     "flow_sde_logprob_sigma_only", "action_squash"):
+                     "flow_sde_logprob_sigma_only", "action_squash", "clip_actions"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if self.clip_sample and self.normalization_mode == "mean_std":
