@@ -348,7 +348,18 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
         flow_prediction=flow_prediction(cfg),
-        extra={"tasks": tasks, "train": asdict(cfg)})
+        extra={"tasks": tasks, "train": asdict(cfg),
+               **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
+
+
+def observation_layout(cfg: TrainConfig) -> Optional[str]:
+    """"lerobot" for a --dataset written by `record --layout lerobot` (its info.json says so): the
+    policy observes what LeRobot's Meta-World env does, and `action-decoder eval` gives it that."""
+    if cfg.dataset is None:
+        return None
+    from .data.lerobot_format import read_info
+
+    return read_info(cfg.dataset).get("layout")
 
 
 def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: float = 0.0,
