@@ -498,3 +498,37 @@ def test_lerobot_postprocessor_clamps_to_the_dataset_range_unless_clip_actions_i
     context = torch.nn.functional.one_hot(torch.arange(2), 2).float()[:, None]
     ours = lib.predict_action_chunk({"state": frame["observation.state"], "context": context}, noise=noise)
     torch.testing.assert_close(theirs, ours, atol=1e-4, rtol=1e-4)
+
+
+LEROBOT_VIEW = """
+import json, numpy as np
+from action_decoder.envs.render import check_rendering
+check_rendering()
+from lerobot.envs.metaworld import MetaworldEnv
+from action_decoder.envs.lerobot_view import LeRobotCamera, agent_pos
+env = MetaworldEnv("door-close-v3", obs_type="pixels_agent_pos")
+obs, _ = env.reset(seed=0)
+for _ in range(3):
+    obs, *_ = env.step(np.array([0.3, -0.2, 0.1, 0.5], np.float32))
+rig = LeRobotCamera()
+ours = rig(env._env)["observation.image"]
+print(json.dumps({"pixels": bool(np.array_equal(ours, obs["pixels"])),
+                  "state": bool(np.array_equal(agent_pos(env._env._get_obs()), obs["agent_pos"].astype(np.float32)))}))
+rig.close()
+"""
+
+
+@lerobot_only
+def test_record_layout_lerobot_observes_exactly_what_lerobots_metaworld_env_does():
+    """`envs.lerobot_view` against LeRobot's own MetaworldEnv, in the same simulator state: the same pixels
+    (corner2 moved, 480 px, turned 180°) and the same agent position."""
+    import os
+    import subprocess
+
+    pytest.importorskip("metaworld")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([sys.executable, "-c", LEROBOT_VIEW], env=env, capture_output=True, text=True, timeout=600)
+    if res.returncode != 0 and "rendering" in res.stderr.lower():
+        pytest.skip(f"offscreen rendering is unavailable here: {res.stderr.strip().splitlines()[-1]}")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout.strip().splitlines()[-1]) == {"pixels": True, "state": True}
