@@ -69,9 +69,15 @@ env.reset(seed=3)
 rig = LeRobotCamera()
 frame = rig(env)["observation.image"]
 cam = env.unwrapped.model.camera("corner2").id
+from action_decoder.evaluate import LeRobotRig
+small = LeRobotRig(64)
+resized = small(env)["observation.image"]                  # what action-decoder eval gives a 64-px camera policy
 print(json.dumps({"shape": list(frame.shape), "dtype": str(frame.dtype), "std": float(frame.std()),
-                  "cam_pos": env.unwrapped.model.cam_pos[cam].tolist(), "want": list(CAMERA_POS)}))
+                  "cam_pos": env.unwrapped.model.cam_pos[cam].tolist(), "want": list(CAMERA_POS),
+                  "small": list(resized.shape), "small_dtype": str(resized.dtype),
+                  "mean_gap": abs(float(resized.mean()) - float(frame.mean()))}))
 rig.close()
+small.close()
 """
 
 
@@ -84,4 +90,5 @@ def test_the_lerobot_camera_is_corner2_moved_as_lerobot_moves_it_at_480_px():
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out["shape"] == [480, 480, 3] and out["dtype"] == "uint8" and out["std"] > 10
     assert out["cam_pos"] == pytest.approx(out["want"])
+    assert out["small"] == [64, 64, 3] and out["small_dtype"] == "uint8" and out["mean_gap"] < 2.0
     assert IMAGE_KEY == "observation.image"
