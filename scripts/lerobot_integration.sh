@@ -9,15 +9,25 @@
 # (d) `lerobot-train --policy.type=action_decoder` for DDPM, flow matching and MeanFlow;
 # (e) reload each checkpoint with LeRobot's `from_pretrained` and run `select_action`; MeanFlow
 # again with 2 data-parallel processes (torchrun → accelerate, gloo on CPU);
-# (f) the plugin's unit tests with LeRobot installed. One summary line per step (ok/FAILED);
+# (f) the plugin's unit tests with LeRobot installed; closed loop on LeRobot's Meta-World env:
+# (g) a state policy trained by `action-decoder train` on `record --layout lerobot` data, converted
+# (`action-decoder convert --to lerobot`) and evaluated by `lerobot-eval --env.type=metaworld`,
+# within 10 points of `action-decoder eval` on the same task and episode count; (h) a camera
+# policy trained by `lerobot-train` on `record --layout lerobot --cameras corner2` data and
+# evaluated by `lerobot-eval` (its success is reported). One summary line per step (ok/FAILED);
 # exit 1 if any step failed. Building the venv takes about 5 minutes and 8.7 GB (LeRobot
-# brings its own torch < 2.11); the steps take a few minutes on a CPU. Nothing is pushed.
+# brings its own torch < 2.11). Steps a-f take a few minutes on a CPU; g and h render LeRobot's
+# 480-px camera at every step (about 0.6 s a frame on a CPU): tens of minutes. Nothing is pushed.
+#   MW_TASK (door-close), MW_EPISODES (10), MW_DEMOS (10), MW_TRAIN_STEPS (800): step g;
+#   CAM_DEMOS (5), CAM_STEPS (200), CAM_EPISODES (2): step h; LEROBOT_SKIP_CLOSED_LOOP=1 skips g and h.
 set -uo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 VENV=${LEROBOT_VENV:-$REPO/.cache/lerobot-venv}   # .cache/ is git-ignored
 WORK=${WORK_DIR:-$(mktemp -d -t lerobot_integration.XXXXXX)}
 STEPS=${LEROBOT_STEPS:-20}
+MW_TASK=${MW_TASK:-door-close} MW_EPISODES=${MW_EPISODES:-10} MW_DEMOS=${MW_DEMOS:-10} MW_TRAIN_STEPS=${MW_TRAIN_STEPS:-800}
+CAM_DEMOS=${CAM_DEMOS:-5} CAM_STEPS=${CAM_STEPS:-200} CAM_EPISODES=${CAM_EPISODES:-2}
 PY=$VENV/bin/python
 mkdir -p "$WORK/logs"
 # This checkout's code first, whatever the venv has installed; no network, no W&B, one thread.
@@ -52,9 +62,10 @@ setup_venv() {
   mapfile -t deps < <("$PY" -c "import sys, tomllib, re; deps = tomllib.load(open(sys.argv[1], 'rb'))['project']['dependencies']; \
 print('\n'.join(d for d in deps if re.split('[<>=!~ ;]', d)[0] != 'torch'))" "$REPO/pyproject.toml")
   "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "${deps[@]}" pytest || return 1
-  # Meta-World only for `action-decoder record` (step c); the other steps need no simulator.
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0" \
-      || echo "metaworld not installed: step c will fail"
+  # Meta-World for `action-decoder record` and LeRobot's Meta-World env (steps c, g, h). Not
+  # "lerobot[metaworld]": it brings mujoco 4, with which metaworld 3.0 fails ("could not broadcast").
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0,<4" \
+      || echo "metaworld not installed: steps c, g and h will fail"
   "$PY" -c "import lerobot, torch, action_decoder, lerobot_policy_action_decoder as p; p.ActionDecoderPolicy; \
 print('lerobot', lerobot.__version__, 'torch', torch.__version__)"
 }
@@ -156,6 +167,43 @@ print(cfg.type, cfg.decoder_type, "tasks", cfg.tasks, "first action", actions[0]
 EOF
 }
 
+success_of() {  # success rate in % from an action-decoder eval JSON or a lerobot-eval eval_info.json
+  "$PY" -c "import json, sys; d = json.load(open(sys.argv[1])); \
+print(round(d['overall']['pc_success'], 1) if 'overall' in d else round(100 * d['success_rate'], 1))" "$1"
+}
+
+state_policy_closed_loop() {  # (g) library state policy → convert → lerobot-eval vs action-decoder eval
+  rm -rf "$WORK/mw_rec" "$WORK/mw_train" "$WORK/mw_lerobot" "$WORK/mw_eval" "$WORK/mw_ours.json"
+  action-decoder record --task "metaworld/$MW_TASK" --demos "$MW_DEMOS" --layout lerobot --output-dir "$WORK/mw_rec" \
+    && action-decoder train --dataset "$WORK/mw_rec" --steps "$MW_TRAIN_STEPS" --eval-episodes 0 \
+         --output-dir "$WORK/mw_train" --seed 0 --no-progress \
+    && action-decoder eval --checkpoint "$WORK/mw_train/final" --episodes "$MW_EPISODES" --output "$WORK/mw_ours.json" \
+    && action-decoder convert --checkpoint "$WORK/mw_train/final" --to lerobot --output-dir "$WORK/mw_lerobot" \
+    && lerobot-eval --policy.path="$WORK/mw_lerobot" --policy.device=cpu --env.type=metaworld \
+         --env.task="$MW_TASK-v3" --eval.n_episodes="$MW_EPISODES" --eval.batch_size=1 --seed=0 \
+         --output_dir="$WORK/mw_eval" || return 1
+  local ours theirs
+  ours=$(success_of "$WORK/mw_ours.json") && theirs=$(success_of "$WORK/mw_eval/eval_info.json") || return 1
+  echo "$MW_TASK, $MW_EPISODES episodes: action-decoder eval $ours %, lerobot-eval $theirs %"
+  "$PY" -c "import sys; a, b = map(float, sys.argv[1:]); sys.exit(0 if abs(a - b) <= 10 else 1)" "$ours" "$theirs" \
+    || { echo "lerobot-eval $theirs % is more than 10 points from action-decoder eval $ours %"; return 1; }
+}
+
+camera_policy_closed_loop() {  # (h) record --layout lerobot --cameras corner2 → lerobot-train → lerobot-eval
+  rm -rf "$WORK/cam_rec" "$WORK/cam_train" "$WORK/cam_eval"
+  action-decoder record --task "metaworld/$MW_TASK" --demos "$CAM_DEMOS" --layout lerobot --cameras corner2 \
+         --output-dir "$WORK/cam_rec" \
+    && lerobot-train --policy.type=action_decoder --policy.device=cpu --policy.push_to_hub=false \
+         --dataset.repo_id=local/cam --dataset.root="$WORK/cam_rec" --dataset.video_backend=pyav \
+         --output_dir="$WORK/cam_train" --steps="$CAM_STEPS" --batch_size=16 --num_workers=0 --log_freq=50 \
+         --save_freq="$CAM_STEPS" --eval_freq=0 --wandb.enable=false \
+    && lerobot-eval --policy.path="$WORK/cam_train/checkpoints/last/pretrained_model" --policy.device=cpu \
+         --env.type=metaworld --env.task="$MW_TASK-v3" --eval.n_episodes="$CAM_EPISODES" --eval.batch_size=1 \
+         --seed=0 --output_dir="$WORK/cam_eval" || return 1
+  echo "camera policy ($CAM_DEMOS demos, $CAM_STEPS lerobot-train steps), $MW_TASK, $CAM_EPISODES episodes:" \
+       "lerobot-eval $(success_of "$WORK/cam_eval/eval_info.json") %"
+}
+
 step venv setup_venv
 if [ "$FAILED" = 0 ]; then
   step a_write_dataset_lerobot_api write_dataset
@@ -167,8 +215,15 @@ if [ "$FAILED" = 0 ]; then
   done
   step d_lerobot_train_ddp_mean_flow lerobot_train_ddp
   step f_plugin_tests_with_lerobot "$PY" -m pytest -q -p no:cacheprovider "$REPO/tests/test_lerobot_plugin.py"
+  if [ -z "${LEROBOT_SKIP_CLOSED_LOOP:-}" ]; then
+    step g_state_policy_lerobot_eval_metaworld state_policy_closed_loop
+    step h_camera_policy_lerobot_eval_metaworld camera_policy_closed_loop
+  fi
 fi
 
 echo "== LeRobot integration ($(cd "$REPO" && git rev-parse --short HEAD 2>/dev/null), work dir $WORK)"
 printf '%s\n' "${SUMMARY[@]}"
+for log in g_state_policy_lerobot_eval_metaworld h_camera_policy_lerobot_eval_metaworld; do
+  [ -f "$WORK/logs/$log.log" ] && grep -h "lerobot-eval .* %" "$WORK/logs/$log.log" | tail -1
+done
 exit "$FAILED"

@@ -418,3 +418,117 @@ def test_lerobot_reload_builds_the_core_policy_without_its_pretrained_encoder_so
     ActionDecoderPolicy.from_pretrained(tmp_path / "ckpt")
     ActionDecoderPolicy(policy.config)
     assert seen == [False, True]
+
+
+@lerobot_only
+@pytest.mark.parametrize("decoder", ["DDPM", "flow_matching", "mean_flow"])
+def test_a_converted_library_checkpoint_runs_in_lerobot_as_in_the_library(decoder, tmp_path):
+    """`action-decoder convert --to lerobot`, loaded by LeRobot's own from_pretrained and processors:
+    the same chunk for the same noise (to LeRobot's eps), actions clamped by the postprocessor; and back."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    from action_decoder.cli import main
+
+    torch.manual_seed(0)
+    stats = {"state": {"mean": [0.1, -0.2, 0.3, 1.0], "std": [0.5, 0.2, 1.5, 0.004],
+                       "min": [-1.0, -1.0, -3.0, 0.99], "max": [1.0, 0.5, 3.0, 1.01]},
+             "actions": {"mean": [0.05, 0.05, 1.2], "std": [0.5, 0.1, 0.8], "min": [-0.8, -0.2, 0.0],
+                         "max": [0.9, 0.3, 2.5]}}
+    cfg = DecoderConfig(decoder_type=decoder, state_dim=4, action_dim=3, action_chunk_size=8, n_action_steps=4,
+                        hidden_size=32, num_hidden_layers=2, num_inference_timesteps=3, extra={"tasks": ["reach"]})
+    lib = CorePolicy(cfg, stats)
+    with torch.no_grad():
+        for p in lib.model.head.parameters():
+            p.mul_(20.0)                               # chunks far beyond the data's range
+    lib.save_pretrained(tmp_path / "lib")
+    assert main(["convert", "--checkpoint", str(tmp_path / "lib"), "--to", "lerobot",
+                 "--output-dir", str(tmp_path / "lr")]) == 0
+    path = str(tmp_path / "lr")
+    pcfg = PreTrainedConfig.from_pretrained(path)
+    policy = get_policy_class(pcfg.type).from_pretrained(path, config=pcfg).eval()
+    pre, post = make_pre_post_processors(pcfg, pretrained_path=path)
+    state = torch.tensor(stats["state"]["mean"]) + 0.3 * torch.randn(5, 4) * torch.tensor(stats["state"]["std"])
+    noise = torch.randn(5, 8, 3)
+    theirs = post(policy.predict_action_chunk(pre({"observation.state": state, "task": ["reach"] * 5}), noise=noise))
+    ours = lib.eval().predict_action_chunk({"state": state}, noise=noise)
+    torch.testing.assert_close(theirs, ours, atol=1e-5, rtol=1e-5)
+    low, high = torch.tensor(stats["actions"]["min"]), torch.tensor(stats["actions"]["max"])
+    assert bool(((theirs >= low) & (theirs <= high)).all())
+    free = CorePolicy.from_pretrained(tmp_path / "lib")
+    free.config.clip_actions = False
+    assert bool(((free.predict_action_chunk({"state": state}, noise=noise) > high)).any())
+    # LeRobot's own save of the loaded policy and processors converts back to the same library weights.
+    policy.save_pretrained(tmp_path / "resaved")
+    pre.save_pretrained(tmp_path / "resaved")
+    post.save_pretrained(tmp_path / "resaved")
+    assert main(["convert", "--checkpoint", str(tmp_path / "resaved"), "--to", "library",
+                 "--output-dir", str(tmp_path / "back")]) == 0
+    back = CorePolicy.from_pretrained(tmp_path / "back")
+    for k, v in lib.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k]), k
+    assert torch.equal(back.predict_action_chunk({"state": state}, noise=noise), ours)
+
+
+@lerobot_only
+def test_lerobot_postprocessor_clamps_to_the_dataset_range_unless_clip_actions_is_off(toy_root, tmp_path):
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from action_decoder.cli import main
+
+    policy, pre, post, meta = _lerobot_policy(toy_root)
+    low, high = (torch.as_tensor(meta.stats["action"][k], dtype=torch.float32) for k in ("min", "max"))
+    assert torch.equal(post(torch.full((3, 3), 50.0)), high.expand(3, -1))     # normalised actions 50 std out
+    policy.save_pretrained(tmp_path / "ckpt")
+    pre.save_pretrained(tmp_path / "ckpt")
+    post.save_pretrained(tmp_path / "ckpt")
+    _, post2 = make_pre_post_processors(policy.config, pretrained_path=str(tmp_path / "ckpt"))
+    assert torch.equal(post2(torch.full((2, 3), -50.0)), low.expand(2, -1))
+    _, _, free, _ = _lerobot_policy(toy_root, clip_actions=False)
+    assert bool((free(torch.full((2, 3), 50.0)) > high).all())
+    # A policy trained by lerobot-train converts to a library checkpoint that clamps alike.
+    assert main(["convert", "--checkpoint", str(tmp_path / "ckpt"), "--to", "library",
+                 "--output-dir", str(tmp_path / "lib")]) == 0
+    lib = CorePolicy.from_pretrained(tmp_path / "lib")
+    assert lib.config.clip_actions and lib.config.extra["tasks"] == TASKS
+    torch.testing.assert_close(lib.normalizers["actions"].max, high)
+    frame = {"observation.state": torch.zeros(2, 6), "task": TASKS}
+    noise = torch.randn(2, 8, 3)
+    theirs = post2(policy.eval().predict_action_chunk(pre(frame), noise=noise))
+    context = torch.nn.functional.one_hot(torch.arange(2), 2).float()[:, None]
+    ours = lib.predict_action_chunk({"state": frame["observation.state"], "context": context}, noise=noise)
+    torch.testing.assert_close(theirs, ours, atol=1e-4, rtol=1e-4)
+
+
+LEROBOT_VIEW = """
+import json, numpy as np
+from action_decoder.envs.render import check_rendering
+check_rendering()
+from lerobot.envs.metaworld import MetaworldEnv
+from action_decoder.envs.lerobot_view import LeRobotCamera, agent_pos
+env = MetaworldEnv("door-close-v3", obs_type="pixels_agent_pos")
+obs, _ = env.reset(seed=0)
+for _ in range(3):
+    obs, *_ = env.step(np.array([0.3, -0.2, 0.1, 0.5], np.float32))
+rig = LeRobotCamera()
+ours = rig(env._env)["observation.image"]
+print(json.dumps({"pixels": bool(np.array_equal(ours, obs["pixels"])),
+                  "state": bool(np.array_equal(agent_pos(env._env._get_obs()), obs["agent_pos"].astype(np.float32)))}))
+rig.close()
+"""
+
+
+@lerobot_only
+def test_record_layout_lerobot_observes_exactly_what_lerobots_metaworld_env_does():
+    """`envs.lerobot_view` against LeRobot's own MetaworldEnv, in the same simulator state: the same pixels
+    (corner2 moved, 480 px, turned 180°) and the same agent position."""
+    import os
+    import subprocess
+
+    pytest.importorskip("metaworld")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([sys.executable, "-c", LEROBOT_VIEW], env=env, capture_output=True, text=True, timeout=600)
+    if res.returncode != 0 and "rendering" in res.stderr.lower():
+        pytest.skip(f"offscreen rendering is unavailable here: {res.stderr.strip().splitlines()[-1]}")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout.strip().splitlines()[-1]) == {"pixels": True, "state": True}

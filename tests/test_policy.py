@@ -19,7 +19,7 @@ SMALL = dict(state_dim=5, action_dim=3, action_chunk_size=8, n_action_steps=4, h
              num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2, num_inference_timesteps=4,
              flow_sde_num_steps=4)
 STATS = {"state": {"mean": [1.0] * 5, "std": [2.0] * 5, "min": [-3.0] * 5, "max": [5.0] * 5},
-         "actions": {"mean": [0.5, -0.5, 2.0], "std": [0.1, 0.2, 3.0], "min": [-1.0] * 3, "max": [1.0] * 3}}
+         "actions": {"mean": [0.5, -0.5, 2.0], "std": [0.1, 0.2, 3.0], "min": [0.0, -1.5, -13.0], "max": [1.0, 0.5, 17.0]}}
 
 
 def make(decoder_type="flow_matching", stats=STATS, **kw):

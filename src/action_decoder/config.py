@@ -49,7 +49,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
-    7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5},
+    7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -219,6 +219,12 @@ class DecoderConfig:
     """tanh on every sampled chunk in environment units, into (−1, 1): what a policy fine-tuned with
     SAC executes (`rl.sde_policy.squash_to_box`), so that evaluating it samples what was trained.
     Format-5 files, older than the field, read as False."""
+    clip_actions: bool = True
+    """Clamp every sampled chunk, in environment units, to the per-dimension [min, max] of the action
+    statistics the policy was built with (the training data's range; no statistics: no clamp), so a
+    robot with hard limits never receives an action its demonstrations never reached. With
+    `action_squash` the tanh bounds the chunk instead (to (−1, 1), the env's box). Format-6 files,
+    older than the field, read as False."""
     noise_actor_hidden: int = 0
     """Width of a noise actor (`noise_actor.NoiseActor`, trained by `finetune --algo dsrl`): an MLP that maps
     the state (and pooled context tokens) to a Gaussian over the sampler's initial noise chunk, which the
@@ -301,7 +307,7 @@ class DecoderConfig:
             raise ValueError("vlm_num_layers, vlm_head_dim, vlm_num_key_value_heads: expected all "
                              f"three set or all None, got {vlm}")
         for name in ("clip_sample", "flow_sde_use", "flow_sde_learn_sigma", "flow_sde_return_logprob",
-                     "flow_sde_logprob_sigma_only", "action_squash"):
+                     "flow_sde_logprob_sigma_only", "action_squash", "clip_actions"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if self.clip_sample and self.normalization_mode == "mean_std":

@@ -72,7 +72,7 @@ class EvalConfig:
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
-                   generator: torch.Generator):
+                   generator: torch.Generator, observe=None):
     """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
 
     Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
@@ -81,7 +81,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     depend on the other episodes sharing its batch, so results do not depend on `num_envs` (up to
     float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
     `generator`. `images` [B, N_cam, 3, S, S] (as `envs.evaluate` passes them with a camera rig)
-    condition a camera policy.
+    condition a camera policy. `observe` maps the env's states [B, 39] to what the policy reads
+    (default: as they are; LeRobot's agent position for a policy of `record --layout lerobot` data).
     """
     device = next(policy.parameters()).device
     base = generator.initial_seed()
@@ -94,6 +95,7 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     def policy_fn(states: np.ndarray, task_index: np.ndarray, episode_seeds: Optional[np.ndarray] = None,
                   plan_indices: Optional[np.ndarray] = None, prev_chunks: Optional[np.ndarray] = None,
                   delay: int = 0, images: Optional[np.ndarray] = None) -> np.ndarray:
+        states = observe(states) if observe is not None else states
         batch = {"state": torch.from_numpy(np.asarray(states, dtype=np.float32)).to(device)}   # [B, S]
         if images is not None:
             batch["images"] = torch.from_numpy(np.ascontiguousarray(images)).to(device)         # [B, N, 3, S, S] uint8
@@ -183,7 +185,10 @@ def run_eval(cfg: EvalConfig) -> dict:
     steps = cfg.steps or None
     out = summary_path(cfg, policy, n_exec, steps, tasks, trained)
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
-    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
+    lerobot = policy.config.extra.get("observation_layout") == "lerobot"
+    if lerobot:
+        from .envs.lerobot_view import agent_pos
+    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator, observe=agent_pos if lerobot else None)
     results, videos = [], {}
     video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:
@@ -265,11 +270,36 @@ def policy_camera_rig(policy: ActionDecoderPolicy):
     cfg = policy.config
     if not cfg.uses_cameras:
         return None
+    if cfg.extra.get("observation_layout") == "lerobot":
+        return LeRobotRig(cfg.image_size)
     names = [key[len(CAMERA_PREFIX):] for key in cfg.cameras if key.startswith(CAMERA_PREFIX)]
     if len(names) != len(cfg.cameras):
         raise ValueError(f"checkpoint cameras: expected keys '{CAMERA_PREFIX}<simulator camera>' to render, got "
                          f"{list(cfg.cameras)} (a dataset's unnamed camera has no simulator view)")
     return CameraObservation(names, cfg.image_size, field="checkpoint cameras")
+
+
+class LeRobotRig:
+    """LeRobot's Meta-World camera (`envs.lerobot_view.LeRobotCamera`, 480² px) resized to the policy's
+    `image_size` as the LeRobot plugin resizes it (bilinear, antialiased): ``{"observation.image": [S, S, 3] uint8}``."""
+
+    def __init__(self, size: int):
+        from .envs.lerobot_view import LeRobotCamera
+
+        self.size, self.camera = size, LeRobotCamera()
+
+    def __call__(self, env) -> dict:
+        import torch.nn.functional as F
+
+        out = {}
+        for key, frame in self.camera(env).items():
+            x = torch.from_numpy(frame).permute(2, 0, 1)[None].float() / 255.0                  # [1, 3, 480, 480]
+            x = F.interpolate(x, size=(self.size, self.size), mode="bilinear", antialias=True, align_corners=False)
+            out[key] = (x.clamp(0, 1) * 255).round().to(torch.uint8)[0].permute(1, 2, 0).numpy()  # [S, S, 3]
+        return out
+
+    def close(self) -> None:
+        self.camera.close()
 
 
 def _mean_jerk(results: list) -> Optional[float]:

@@ -20,7 +20,9 @@ class Normalizer(nn.Module):
     """Maps one feature to and from the network's units.
 
     mean_std: (x − mean)/std;  min_max: to [−1, 1] by 2·(x − min)/(max − min) − 1;
-    identity: unchanged. Buffers hold every statistic so any mode can be reloaded.
+    identity: unchanged. Buffers hold every statistic so any mode can be reloaded. Without
+    statistics the range [min, max] is (−inf, inf): unknown, so nothing is clipped to it
+    (`DecoderConfig.clip_actions`), and min_max leaves such a dimension as it is.
 
     A spread (std, or half the range) below `constant_below` marks a constant dimension and is
     replaced by `SPREAD_FLOOR`. The statistics stay float32 whatever dtype the policy is moved to
@@ -32,8 +34,8 @@ class Normalizer(nn.Module):
         self.name, self.dim, self.mode, self.constant_below = name, dim, mode, float(constant_below)
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("std", torch.ones(dim))
-        self.register_buffer("min", -torch.ones(dim))
-        self.register_buffer("max", torch.ones(dim))
+        self.register_buffer("min", torch.full((dim,), -torch.inf))
+        self.register_buffer("max", torch.full((dim,), torch.inf))
 
     def set_stats(self, stats: Mapping[str, object]) -> None:
         values = {}
@@ -68,10 +70,16 @@ class Normalizer(nn.Module):
             std = self.std
             return torch.where(std < self.constant_below, torch.full_like(std, SPREAD_FLOOR), std), self.mean
         if self.mode == "min_max":
-            half = (self.max - self.min) / 2
+            known = torch.isfinite(self.min) & torch.isfinite(self.max)        # [D] False: no statistics
+            low, high = torch.where(known, self.min, -1.0), torch.where(known, self.max, 1.0)
+            half = (high - low) / 2
             half = torch.where(half < self.constant_below / 2, torch.full_like(half, SPREAD_FLOOR / 2), half)
-            return half, (self.max + self.min) / 2
+            return half, (high + low) / 2
         return None, None
+
+    def clip(self, x: Tensor) -> Tensor:
+        """`x` [..., D] clamped to the statistics' [min, max] per dimension (no statistics: unchanged)."""
+        return torch.minimum(torch.maximum(x, self.min.to(x.dtype)), self.max.to(x.dtype))
 
     def normalize(self, x: Tensor) -> Tensor:
         scale, shift = self._scale_shift()

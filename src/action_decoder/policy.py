@@ -465,9 +465,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                 "context_mask": _to(batch.get("context_mask"), param.device)}
 
     def _env_actions(self, x: Tensor) -> Tensor:
-        """A sampled chunk [B, H, D] in environment units (squashed into (−1, 1) with `action_squash`)."""
-        actions = self.normalizers["actions"].unnormalize(x)
-        return torch.tanh(actions) if self.config.action_squash else actions
+        """A sampled chunk [B, H, D] in environment units: squashed into (−1, 1) with `action_squash`,
+        else clamped to the action statistics' [min, max] with `clip_actions` (zero gradient outside)."""
+        norm = self.normalizers["actions"]
+        actions = norm.unnormalize(x)
+        if self.config.action_squash:
+            return torch.tanh(actions)
+        return norm.clip(actions) if self.config.clip_actions else actions
 
     def chain_log_prob(self, batch: Mapping[str, Any], chain: Tensor, grid: Tensor, reduce: str = "sum",
                        meanflow_velocity: Optional[str] = None) -> Tensor:

@@ -6,7 +6,7 @@ import json
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 
 @dataclass
@@ -29,8 +29,10 @@ class RecordConfig:
     cameras: Optional[list[str]] = None
     """Meta-World cameras to render at every observation (e.g. corner2, or corner2,corner), stored as
     the video features observation.images.<camera>. None: no pixels."""
-    image_size: int = 64
-    """Rendered frames are image_size × image_size pixels."""
+    image_size: Optional[int] = None
+    """Rendered frames are image_size × image_size pixels (None: 64; --layout lerobot renders at LeRobot's 480)."""
+    layout: Literal["library", "lerobot"] = "library"
+    """library: the simulator's 39-d state, cameras as observation.images.<camera>; lerobot: what LeRobot's Meta-World env (lerobot-eval --env.type=metaworld) observes, the 4-d agent position and with --cameras corner2 its observation.image."""
 
 
 def check_writable(out: Path, option: str = "--output-dir") -> None:
@@ -53,18 +55,24 @@ def run_record(cfg: RecordConfig) -> Path:
 
     if isinstance(cfg.demos, bool) or not isinstance(cfg.demos, int) or cfg.demos < 1:
         raise ValueError(f"--demos: expected an integer >= 1 (demonstrations per task), got {cfg.demos!r}")
-    if isinstance(cfg.image_size, bool) or not isinstance(cfg.image_size, int) or cfg.image_size < 8:
+    if cfg.image_size is not None and (isinstance(cfg.image_size, bool) or not isinstance(cfg.image_size, int)
+                                       or cfg.image_size < 8):
         raise ValueError(f"--image-size: expected an integer >= 8 (pixels), got {cfg.image_size!r}")
-    if not cfg.cameras and cfg.image_size != RecordConfig.image_size:
+    if not cfg.cameras and cfg.image_size is not None:
         raise ValueError(f"--image-size: sizes the frames of --cameras, which was not given (got "
                          f"--image-size {cfg.image_size}); add --cameras corner2 (or others) or drop it")
+    if cfg.layout == "lerobot" and cfg.image_size not in (None, 480):
+        raise ValueError(f"--image-size: --layout lerobot records LeRobot's Meta-World camera at its 480 x 480 px; "
+                         f"got --image-size {cfg.image_size} (drop it)")
     check_writable(Path(cfg.output_dir))
+    size = cfg.image_size or (480 if cfg.layout == "lerobot" else 64)
     root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
-                        image_size=cfg.image_size)
+                        image_size=size, layout=cfg.layout)
     info = json.loads((root / "meta" / "info.json").read_text())
     cameras = [k for k, v in info["features"].items() if v.get("dtype") == "video"]
     print(f"recorded {info['total_episodes']} demonstrations ({info['total_frames']} frames, {info['total_tasks']} "
           f"task(s), fps {info['fps']}"
-          + (f", cameras {', '.join(cameras)} at {cfg.image_size}x{cfg.image_size} px" if cameras else "")
+          + (f", cameras {', '.join(cameras)} at {size}x{size} px" if cameras else "")
+          + (", LeRobot's Meta-World observation" if cfg.layout == "lerobot" else "")
           + f") as a LeRobot v3.0 dataset in {root}", flush=True)
     return root

@@ -86,6 +86,8 @@ class TrainConfig:
     """Action chunk length H, in control steps."""
     n_action_steps: int = DecoderConfig.n_action_steps
     """Actions executed from each chunk before re-planning (stored in the checkpoint)."""
+    clip_actions: bool = True
+    """Clamp sampled chunks to the training data's per-dimension action [min, max] (stored in the checkpoint)."""
     inference_steps: int = 0
     """Sampling steps K (0: the decoder's default: DDPM 10, flow matching 10, MeanFlow 1)."""
     hidden_size: int = 96
@@ -328,14 +330,26 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
     k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
     return DecoderConfig(state_layout=state_layout(cfg), **camera_fields(cfg, images),
         decoder_type=cfg.decoder, prediction_type=cfg.prediction_type, num_inference_timesteps=k,
-        action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, state_dim=state_dim,
+        action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, clip_actions=cfg.clip_actions,
+        state_dim=state_dim,
         action_dim=action_dim, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
         num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
         flow_prediction=flow_prediction(cfg),
-        extra={"tasks": tasks, "train": asdict(cfg)})
+        extra={"tasks": tasks, "train": asdict(cfg),
+               **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
+
+
+def observation_layout(cfg: TrainConfig) -> Optional[str]:
+    """"lerobot" for a --dataset written by `record --layout lerobot` (its info.json says so): the
+    policy observes what LeRobot's Meta-World env does, and `action-decoder eval` gives it that."""
+    if cfg.dataset is None:
+        return None
+    from .data.lerobot_format import read_info
+
+    return read_info(cfg.dataset).get("layout")
 
 
 def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: float = 0.0,

@@ -76,6 +76,25 @@ class ActionDecoderConfig(PreTrainedConfig):
     noise_actor_bound: float = 2.5
     # Task strings, by task index (filled from the dataset).
     tasks: list[str] = field(default_factory=list)
+    # The postprocessor clamps every action to the dataset's per-dimension [min, max] (its `action`
+    # statistics), after un-normalising; saved in policy_postprocessor.json with the bounds.
+    clip_actions: bool = True
+    # The rest of the core's DecoderConfig, at its defaults (`action-decoder convert` carries a library
+    # checkpoint's values): network, SDE and MeanFlow details, real-time chunking, control frequency.
+    intermediate_size: int | None = None
+    rms_norm_eps: float = 1e-6
+    rope_theta: float = 10000.0
+    flow_sde_eps: float = 1e-4
+    flow_sde_clip_t: float = 1e-2
+    flow_sde_t_min: float | None = None
+    meanflow_time_mean: float = 0.4
+    meanflow_time_std: float = 1.0
+    meanflow_adaptive_c: float = 1e-3
+    meanflow_dudt: str = "finite_difference"
+    rtc_guidance_weight: float = 5.0
+    rtc_schedule: str = "exp"
+    rtc_horizon: str = "auto"
+    default_ctrl_freq: float = 10.0
 
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
@@ -101,6 +120,8 @@ class ActionDecoderConfig(PreTrainedConfig):
         if visual != NormalizationMode.IDENTITY:
             raise ValueError(f"policy.normalization_mapping: expected VISUAL: IDENTITY (the image encoder takes "
                              f"pixels in [0, 1] and normalises them itself), got VISUAL: {getattr(visual, 'value', visual)}")
+        if not isinstance(self.clip_actions, bool):
+            raise ValueError(f"policy.clip_actions: expected true or false, got {self.clip_actions!r}")
         decoder_config(self, state_dim=1, action_dim=1)     # raises on a bad value, naming the field
 
     def get_optimizer_preset(self) -> AdamWConfig:

@@ -18,20 +18,11 @@ from torch import Tensor
 
 from action_decoder import DecoderConfig
 from action_decoder.config import is_camera_key
-from action_decoder.train import DEFAULT_STEPS  # sampling steps when num_inference_steps is None
+# The plugin's config fields and their core names: one table, shared with `action-decoder convert`.
+from action_decoder.lerobot_checkpoint import PLUGIN_FIELDS, PLUGIN_FIELDS_ADDED, RENAMED, plugin_core_config  # noqa: F401
 
 STATE, ACTION, PAD, TASK = "observation.state", "action", "action_is_pad", "task"
-# Plugin field -> DecoderConfig field, where the names differ (LeRobot's names on the left).
-RENAMED = {"chunk_size": "action_chunk_size", "num_inference_steps": "num_inference_timesteps"}
-# Fields passed to DecoderConfig under the same name.
-SHARED = ("decoder_type", "n_action_steps", "flow_sde_num_steps", "num_train_timesteps", "prediction_type",
-          "beta_schedule", "clip_sample", "flow_sde_use", "flow_sde_mode", "flow_sde_s_churn",
-          "flow_sde_learn_sigma", "flow_sde_sigma_init", "flow_sde_return_logprob", "flow_sde_logprob_sigma_only",
-          "meanflow_sde_velocity", "meanflow_ratio_r_neq_t", "meanflow_time_dist", "meanflow_adaptive_p",
-          "meanflow_target",
-          "hidden_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads",
-          "image_size", "image_encoder", "image_tokens_per_camera", "image_encoder_pretrained",
-          "freeze_image_encoder", "image_shift", "noise_actor_hidden", "noise_actor_bound")
+SHARED = PLUGIN_FIELDS + PLUGIN_FIELDS_ADDED
 
 
 def feature_dims(input_features: Mapping[str, Any], output_features: Mapping[str, Any]) -> tuple[int, int]:
@@ -69,33 +60,20 @@ def unused_inputs_message(keys: Sequence[str]) -> Optional[str]:
 
 
 def decoder_config(cfg: Any, state_dim: int, action_dim: int, cameras: Sequence[str] = ()) -> DecoderConfig:
-    """The core `DecoderConfig` of a plugin config.
+    """The core `DecoderConfig` of a plugin config (any object with its attribute names).
 
     Normalisation is `identity`: LeRobot's processors normalise before the policy and
-    un-normalise after it, so the weights hold no statistics. `num_inference_steps=None`
+    un-normalise after it, and the postprocessor clamps actions to the data's range
+    (`clip_actions`), so the core policy neither normalises nor clips. `num_inference_steps=None`
     and `flow_prediction=None` take what `action-decoder train` takes (MeanFlow: 1 step and
     the clean-chunk head; DDPM and flow matching: 10 steps and GO-1's velocity head). With
     two or more `tasks` the task is a one-hot context token of width len(tasks).
     `cameras` (`camera_keys` of the input features) go through the core's image encoder.
     A bad value raises the core's ValueError with the plugin's field name (`policy.<name>`).
     """
-    tasks = [str(t) for t in (getattr(cfg, "tasks", None) or [])]
-    values = {name: getattr(cfg, name) for name in SHARED}
-    steps = getattr(cfg, "num_inference_steps")
-    values["num_inference_timesteps"] = DEFAULT_STEPS.get(cfg.decoder_type, 10) if steps is None else steps
-    values["action_chunk_size"] = getattr(cfg, "chunk_size")
-    pred = getattr(cfg, "flow_prediction")
-    values["flow_prediction"] = pred or ("sample" if cfg.decoder_type == "mean_flow" else "velocity")
-    try:
-        return DecoderConfig(**values, state_dim=state_dim, action_dim=action_dim, normalization_mode="identity",
-                             cameras=tuple(cameras),
-                             context_dim=len(tasks) if len(tasks) > 1 else None,
-                             extra={"tasks": tasks, "lerobot_policy": "action_decoder"})
-    except ValueError as err:
-        msg = str(err)
-        for ours, core in RENAMED.items():
-            msg = msg.replace(core, ours)
-        raise ValueError(f"policy.{msg}") from None
+    names = SHARED + ("chunk_size", "num_inference_steps", "flow_prediction")
+    values = {name: getattr(cfg, name) for name in names if hasattr(cfg, name)}
+    return plugin_core_config(values, state_dim, action_dim, cameras, getattr(cfg, "tasks", None) or [])
 
 
 def task_list(tasks: Any) -> list[str]:

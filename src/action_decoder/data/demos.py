@@ -19,6 +19,11 @@ simulated from a saved MuJoCo state and rewound), and chunks are cut from those
 ``cameras`` records pixels too: the named Meta-World cameras (corner2, corner, topview, ...) are
 rendered offscreen at every observation (after reset and after each action, aligned with the
 states), ``image_size``² pixels, stored as the video features ``observation.images.<camera>``.
+
+``layout="lerobot"`` records what LeRobot's Meta-World env observes instead (`envs.lerobot_view`):
+``observation.state`` is the 4-d agent position and, with ``cameras=["corner2"]``,
+``observation.image`` its corner2 view at 480² pixels, so that a policy trained on the dataset
+runs under ``lerobot-eval --env.type=metaworld``.
 """
 
 from __future__ import annotations
@@ -126,11 +131,12 @@ def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
     return np.stack(actions + [actions[-1]] * (LOOKAHEAD - len(actions)))
 
 
-def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None) -> dict | None:
+def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observe=None) -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
     the executed action is perturbed (noise drawn from ``seed``), the recorded one is not, and
     each frame keeps the clean continuation. ``rig`` (`envs.render.CameraObservation`) adds the
-    frames of its cameras at every recorded state."""
+    frames of its cameras at every recorded state (keys: a camera name, stored as ``observation.images.<name>``,
+    or a whole feature key). ``observe`` maps the simulator's state to the recorded one (default: as it is)."""
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
     obs = env.reset(seed=seed)[0]
@@ -139,9 +145,9 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None) -> dic
     frames: dict[str, list[np.ndarray]] = {}
     while len(actions) < MAX_EPISODE_STEPS:
         action = expert(obs)                                                   # [D], in [-1, 1]
-        states.append(obs.astype(np.float32))
+        states.append(observe(obs) if observe is not None else obs.astype(np.float32))
         for camera, frame in (rig(env) if rig is not None else {}).items():   # [S, S, 3] uint8
-            frames.setdefault(IMAGE_PREFIX + camera, []).append(frame)
+            frames.setdefault(camera if camera.startswith("observation.") else IMAGE_PREFIX + camera, []).append(frame)
         actions.append(action)
         if action_noise > 0:
             continuations.append(_continuation(env, expert, action))          # [LOOKAHEAD, D]
@@ -164,15 +170,24 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None) -> dic
 
 def record_episodes(
     task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0,
-    cameras: list[str] | None = None, image_size: int = 64,
+    cameras: list[str] | None = None, image_size: int = 64, layout: str = "library",
 ) -> tuple[list[dict], float, dict]:
     """Roll out the scripted expert of ``task`` until ``num_episodes`` succeed: the episodes (the
     dicts ``write_episodes`` takes, ``task_index`` 0, ``images`` of ``cameras`` at ``image_size``²
     when given), the env's fps and a ``source`` record (env, versions, seed, first layout,
-    attempts, expert success rate, noise)."""
+    attempts, expert success rate, noise). ``layout="lerobot"``: LeRobot's observation
+    (`envs.lerobot_view`; ``cameras`` None or ["corner2"], at LeRobot's 480² whatever ``image_size``)."""
     cameras = camera_names(cameras)
+    from ..envs import lerobot_view
     from ..envs.metaworld_tasks import SEED_STRIDE, canonical_task, demo_seeds, expert_policy, make_env
     from ..envs.render import CameraObservation
+
+    if layout not in ("library", "lerobot"):
+        raise ValueError(f"--layout: expected 'library' or 'lerobot', got {layout!r}")
+    if layout == "lerobot" and cameras not in ([], [lerobot_view.CAMERA]):
+        raise ValueError(f"--cameras: LeRobot's Meta-World env observes its {lerobot_view.CAMERA} camera only; expected "
+                         f"--cameras {lerobot_view.CAMERA} (or none, a state-only dataset) with --layout lerobot, "
+                         f"got {cameras}")
 
     name = canonical_task(task)
     if not isinstance(num_episodes, (int, np.integer)) or num_episodes < 1:
@@ -188,11 +203,16 @@ def record_episodes(
                          f"per seed ({max_attempts_factor:g} attempts each within the seed's {SEED_STRIDE} layouts), "
                          f"got {num_episodes}")
     seeds = demo_seeds(seed, attempts)
-    rig = CameraObservation(cameras, image_size, "--cameras") if cameras else None
+    observe = None
+    if layout == "lerobot":
+        rig, observe, image_size = (lerobot_view.LeRobotCamera() if cameras else None), lerobot_view.agent_pos, \
+            lerobot_view.IMAGE_SIZE
+    else:
+        rig = CameraObservation(cameras, image_size, "--cameras") if cameras else None
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     try:
         for attempt, layout_seed in enumerate(seeds, start=1):
-            episode = _rollout(env, expert, layout_seed, action_noise, rig)
+            episode = _rollout(env, expert, layout_seed, action_noise, rig, observe)
             if episode is not None:
                 episodes.append(episode)
             if len(episodes) == num_episodes:
@@ -212,7 +232,8 @@ def record_episodes(
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
               "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise,
-              **({"cameras": cameras, "image_size": image_size} if cameras else {})}
+              **({"cameras": cameras, "image_size": image_size} if cameras else {}),
+              **({"layout": layout} if layout != "library" else {})}
     return episodes, round(1.0 / env.unwrapped.dt, 6), source
 
 
@@ -269,13 +290,15 @@ def generate_demos(
 
 
 def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int = 0, action_noise: float = 0.0,
-                 max_attempts_factor: float = 3.0, cameras: list[str] | None = None, image_size: int = 64) -> Path:
+                 max_attempts_factor: float = 3.0, cameras: list[str] | None = None, image_size: int = 64,
+                 layout: str = "library") -> Path:
     """Record ``num_episodes`` expert demonstrations of every task in ``spec`` (``metaworld/<task>``,
     comma-separated or a group) into one LeRobot v3.0 dataset at ``output_dir``, with the
     Meta-World task names as task strings (``task_index`` in the order of ``resolve_tasks``) and
     ``"env": "metaworld"`` in ``info.json``; ``cameras`` (Meta-World names) add their frames at
-    ``image_size``² as video features ``observation.images.<camera>``. ``output_dir`` must be new
-    or empty: an existing dataset is never overwritten."""
+    ``image_size``² as video features ``observation.images.<camera>``. ``layout="lerobot"`` records
+    LeRobot's Meta-World observation instead (`record_episodes`), with ``"layout": "lerobot"`` in
+    ``info.json``. ``output_dir`` must be new or empty: an existing dataset is never overwritten."""
     cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import resolve_tasks
 
@@ -285,10 +308,15 @@ def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int
     names, episodes, sources = resolve_tasks(spec), [], {}
     for i, name in enumerate(names):
         eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
-                                                  cameras, image_size)
+                                                  cameras, image_size, layout)
         episodes += [{**ep, "task_index": i} for ep in eps]
     source = sources[names[0]] if len(names) == 1 else {"env": "metaworld", "tasks": sources}
-    return write_episodes(out, episodes, names, fps, {"robot_type": "sawyer", "env": "metaworld", "source": source})
+    info = {"robot_type": "sawyer", "env": "metaworld", "source": source}
+    if layout == "lerobot":
+        from ..envs.lerobot_view import STATE_NAMES
+
+        return write_episodes(out, episodes, names, fps, {**info, "layout": layout}, names={STATE: STATE_NAMES})
+    return write_episodes(out, episodes, names, fps, info)
 
 
 def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0,

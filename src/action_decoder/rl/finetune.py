@@ -357,7 +357,8 @@ def decision_rewards(ro, cfg: FinetuneConfig, n_exec: int) -> torch.Tensor:
 def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, reduce: str, squash: bool):
     """The rollout's act function: one SDE chain per env; records the chain [K+1, H, D], its
     grid and per-step log-probs [K] (for PPO) and the executed actions (for SAC's buffer).
-    PPO executes the unnormalised final state as BC does; SAC squashes it into the box."""
+    PPO executes the unnormalised final state as BC does (clamped to the data's range with
+    `clip_actions`); SAC squashes it into the box."""
     n_exec = policy.config.n_action_steps
 
     @torch.no_grad()
@@ -368,6 +369,8 @@ def chain_actor(policy, make_batch, steps: int, generator: torch.Generator, redu
             actions = squash_to_box(res.chain[:, -1], policy.normalizers["actions"])[0]
         else:
             actions = policy.normalizers["actions"].unnormalize(res.chain[:, -1])
+            if policy.config.clip_actions:
+                actions = policy.normalizers["actions"].clip(actions)
         return actions.numpy(), {"chain": res.chain, "logp": res.step_log_probs, "actions": actions[:, :n_exec],
                                  "grid": res.grid.expand(len(states), -1)}
 
