@@ -1,4 +1,4 @@
-"""`action-decoder` console script: train, eval, finetune, record (every option from a dataclass, via tyro)."""
+"""`action-decoder` console script: train, eval, finetune, record, export (every option from a dataclass, via tyro)."""
 
 from __future__ import annotations
 
@@ -40,13 +40,15 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     from .evaluate import EvalConfig, run_eval
+    from .export import ExportConfig, run_export
     from .record import RecordConfig, run_record
     from .rl import FinetuneConfig, finetune
     from .train import TrainConfig, closed_loop_env, train
 
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
-    commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "record": RecordConfig}
+    commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "record": RecordConfig,
+                "export": ExportConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
         if hasattr(cfg, "device"):
@@ -63,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
             finetune(cfg)
         elif isinstance(cfg, RecordConfig):
             run_record(cfg)
+        elif isinstance(cfg, ExportConfig):
+            run_export(cfg)
         else:
             run_eval(cfg)
     except (ValueError, OSError, FloatingPointError) as err:
