@@ -70,7 +70,8 @@ def dpm_solver_coefficients(config, steps: int) -> list[DPMStep]:
             sched.model_outputs[-1] = eye[2]
         x_next = sched.step(eye[1], step, eye[0]).prev_sample     # [3]: a, b, c
         x0 = sched.model_outputs[-1]                              # [3]: p, q, 0
-        rows.append(DPMStep(t=1.0 - float(step) / config.num_train_timesteps, alpha_bar=float(alphas[step]),
+        t = 1.0 - step.reshape(1).float() / config.num_train_timesteps      # float32, as the policy maps it
+        rows.append(DPMStep(t=float(t), alpha_bar=float(alphas[step]),
                             a=float(x_next[0]), b=float(x_next[1]), c=float(x_next[2]) if k > 0 else 0.0,
                             p=float(x0[0]), q=float(x0[1])))
     sched.set_timesteps(steps)          # leave the shared scheduler as a fresh sampling call finds it
