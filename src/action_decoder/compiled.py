@@ -36,16 +36,17 @@ def _mode(policy: "ActionDecoderPolicy", mode: Optional[str]) -> Optional[str]:
 
 
 def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None, steps: Optional[int] = None,
-                    mode: Optional[str] = None) -> Callable[..., Tensor]:
+                    mode: Optional[str] = None, backend: str = "inductor") -> Callable[..., Tensor]:
     """fn(batch, noise [B, H, D]) → chunk [B, H, D] (env units): `predict_action_chunk(batch, noise=noise)`
     as one compiled graph. `batch` holds "state" and, where the policy uses them, "context" (+
     "context_mask") and "images". `mode`: torch.compile's (None: "reduce-overhead" on CUDA, else the
-    default). A new batch size or context length compiles once more."""
+    default); `backend`: torch.compile's. A new batch size or context length compiles once more."""
     refusal = export_refusal(policy, sampler)
     if refusal:
         raise ValueError(refusal)
     module = ChunkSampler(policy, sampler, steps).eval()
-    compiled = torch.compile(module, mode=_mode(policy, mode), fullgraph=True, dynamic=False)
+    mode = _mode(policy, mode) if backend == "inductor" else None
+    compiled = torch.compile(module, mode=mode, backend=backend, fullgraph=True, dynamic=False)
 
     @torch.no_grad()
     def sample(batch: Mapping[str, Any], noise: Tensor) -> Tensor:
@@ -60,11 +61,12 @@ def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None
     return sample
 
 
-def compile_network(policy: "ActionDecoderPolicy", mode: Optional[str] = None) -> "ActionDecoderPolicy":
+def compile_network(policy: "ActionDecoderPolicy", mode: Optional[str] = None,
+                    backend: str = "inductor") -> "ActionDecoderPolicy":
     """Compile the policy's network in place (`nn.Module.compile`) for training; returns the policy."""
     if policy.config.decoder_type == "mean_flow" and policy.config.meanflow_dudt == "jvp":
         raise ValueError("--compile: MeanFlow's meanflow_dudt='jvp' differentiates the network with "
                          "torch.func.jvp, which the compiled network does not support; use "
                          "meanflow_dudt='finite_difference' (the default) or drop --compile")
-    policy.model.compile(mode=mode)
+    policy.model.compile(mode=mode, backend=backend)
     return policy
