@@ -237,3 +237,12 @@ def test_eval_onnx_closed_loop_matches_checkpoint(tmp_path):
         run_eval(EvalConfig(onnx=str(tmp_path / "p.onnx"), steps=5, **common))
     with pytest.raises(ValueError, match="--checkpoint, --onnx: expected exactly one"):
         run_eval(EvalConfig(**common))
+
+
+def test_dynamo_exporter_writes_the_same_graph(tmp_path):
+    pytest.importorskip("onnxscript")
+    policy = lerobot_policy("mean_flow", num_inference_timesteps=1)
+    path = policy.export_onnx(tmp_path / "d.onnx", batch_size=0, exporter="dynamo")
+    assert read_metadata(path)["exporter"] == "dynamo"
+    err, _ = _compare(policy, path, {"state": torch.randn(3, 6)})                 # a batch size of its own
+    assert err <= TOL

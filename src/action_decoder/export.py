@@ -24,8 +24,8 @@ import torch
 from torch import Tensor, nn
 
 from .expert.conditioning import Prefix
-from .flows.ddpm import inference_scheduler
-from .flows.paths import check_steps, time_grid
+from .flows.ddpm import _clip_x0, inference_scheduler
+from .flows.paths import check_steps, time_grid, velocity_from_sample
 from .state_layout import network_state
 
 if TYPE_CHECKING:
@@ -153,7 +153,7 @@ class ChunkSampler(nn.Module):
             for st in self.ddpm:
                 out = net(x, st.t, st.t)
                 if cfg.clip_sample:
-                    out = _clip_x0(out, x, st.alpha_bar, cfg.prediction_type)
+                    out = _clip_x0(out, x, torch.tensor(st.alpha_bar), cfg.prediction_type)
                 x, h = st.a * x + st.b * out + st.c * h, st.p * x + st.q * out
         else:
             for t, r, dt in self.times:
@@ -164,18 +164,8 @@ class ChunkSampler(nn.Module):
         return policy._env_actions(x)
 
     def _velocity(self, out: Tensor, x: Tensor, t: float) -> Tensor:
-        """The head's output as a velocity (`flows.paths.velocity_from_sample` for an x̂ head)."""
-        if self.policy.config.flow_prediction == "velocity":
-            return out
-        return (out - x) / max(1.0 - t, 0.05)
-
-
-def _clip_x0(out: Tensor, x: Tensor, alpha_bar: float, prediction_type: str) -> Tensor:
-    """`flows.ddpm._clip_x0` with ᾱ a constant."""
-    if prediction_type == "sample":
-        return out.clamp(-1, 1)
-    x0 = ((x - (1 - alpha_bar) ** 0.5 * out) / alpha_bar ** 0.5).clamp(-1, 1)
-    return (x - alpha_bar ** 0.5 * x0) / (1 - alpha_bar) ** 0.5
+        """The head's output as a velocity, as `ActionDecoderPolicy._flow_net` makes it."""
+        return out if self.policy.config.flow_prediction == "velocity" else velocity_from_sample(x, torch.tensor(t), out)
 
 
 def _example_inputs(policy: "ActionDecoderPolicy", batch: int, context_length: Optional[int]) -> dict:

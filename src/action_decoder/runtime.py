@@ -81,11 +81,11 @@ class OnnxPolicy:
         return int(self.metadata["inputs"][STATE][1])
 
     def _check(self, name: str, value, dtype, batch: int) -> np.ndarray:
-        shape = self.metadata["inputs"][name]
-        want = [batch] + list(shape[1:])
+        """`value` as a contiguous array of `dtype` and the file's shape for `batch` rows, or one ValueError line."""
+        want = [batch] + list(self.metadata["inputs"][name][1:])
         arr = np.asarray(value)
-        if arr.dtype == np.bool_ and dtype != np.bool_ or (dtype == np.float32 and not np.issubdtype(arr.dtype, np.floating)) \
-                or (dtype == np.uint8 and arr.dtype != np.uint8):
+        kinds = {np.float32: "f", np.uint8: "u", np.bool_: "biu"}[dtype]        # what converts without loss of meaning
+        if arr.dtype.kind not in kinds or (dtype == np.uint8 and arr.dtype != np.uint8):
             raise ValueError(f"{name}: expected {np.dtype(dtype).name} values of shape {want}, got dtype {arr.dtype}")
         if list(arr.shape) != want:
             raise ValueError(f"{name}: expected shape {want}, got {list(arr.shape)}")
