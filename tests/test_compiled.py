@@ -57,3 +57,22 @@ def test_compile_refusals_are_one_line():
         compile_network(mf)
     with pytest.raises(ValueError, match="sampler: the SDE sampler"):
         compile_sampler(mf, sampler="sde")
+
+
+def test_eval_policy_fn_with_the_compiled_sampler_draws_the_checkpoints_noise():
+    """`eval --compile`'s policy_fn gives the chunks of the plain one: same per-row noise, same sampler."""
+    import numpy as np
+
+    from action_decoder.evaluate import make_policy_fn
+
+    torch.manual_seed(0)
+    policy = ActionDecoderPolicy(DecoderConfig(decoder_type="mean_flow", num_inference_timesteps=2, **TINY)).eval()
+    states = np.random.default_rng(0).normal(size=(3, 5)).astype(np.float32)
+    keys = {"episode_seeds": np.array([5, 6, 7]), "plan_indices": np.array([0, 2, 1])}
+    plain = make_policy_fn(policy, 1, None, None, torch.Generator().manual_seed(4))
+    compiled = make_policy_fn(policy, 1, None, None, torch.Generator().manual_seed(4),
+                              compile_sampler(policy, backend="aot_eager"))
+    want = plain(states, np.zeros(3, np.int64), **keys)
+    assert np.abs(compiled(states, np.zeros(3, np.int64), **keys) - want).max() <= 1e-5
+    other = plain(states, np.zeros(3, np.int64), episode_seeds=keys["episode_seeds"], plan_indices=np.array([1, 2, 1]))
+    assert np.abs(other[0] - want[0]).max() > 1e-3 and np.abs(other[1:] - want[1:]).max() <= 1e-6
