@@ -145,15 +145,18 @@ class ChunkSampler(nn.Module):
         prefix = self._prefix(context, context_mask, images)
         x = noise.float()                                                             # [B, H, D]
 
+        def const(v: float) -> Tensor:                       # a constant of the graph, on the chunk's device
+            return torch.tensor(v, device=x.device)
+
         def net(x: Tensor, t: float, r: float) -> Tensor:
-            return policy.model(x, torch.tensor(t), torch.tensor(r), s, prefix=prefix).float()
+            return policy.model(x, const(t), const(r), s, prefix=prefix).float()
 
         if self.kind == "ddpm":
             h = torch.zeros_like(x)
             for st in self.ddpm:
                 out = net(x, st.t, st.t)
                 if cfg.clip_sample:
-                    out = _clip_x0(out, x, torch.tensor(st.alpha_bar), cfg.prediction_type)
+                    out = _clip_x0(out, x, const(st.alpha_bar), cfg.prediction_type)
                 x, h = st.a * x + st.b * out + st.c * h, st.p * x + st.q * out
         else:
             for t, r, dt in self.times:
@@ -165,7 +168,9 @@ class ChunkSampler(nn.Module):
 
     def _velocity(self, out: Tensor, x: Tensor, t: float) -> Tensor:
         """The head's output as a velocity, as `ActionDecoderPolicy._flow_net` makes it."""
-        return out if self.policy.config.flow_prediction == "velocity" else velocity_from_sample(x, torch.tensor(t), out)
+        if self.policy.config.flow_prediction == "velocity":
+            return out
+        return velocity_from_sample(x, torch.tensor(t, device=x.device), out)
 
 
 def _example_inputs(policy: "ActionDecoderPolicy", batch: int, context_length: Optional[int]) -> dict:
