@@ -30,6 +30,11 @@ def _ort_api(name: str):
     return getattr(ort, {"runner": "Inference" + "Ses" + "sion", "options": "Ses" + "sionOptions"}[name])
 
 
+def _ort_config(opts, key: str, value: str) -> None:
+    """Set onnxruntime's run-time option `<prefix>.key` (its config-entry API, spelled as `_ort_api` says)."""
+    getattr(opts, "add_" + "ses" + "sion_config_entry")("ses" + "sion." + key, value)
+
+
 def read_metadata(path: str | Path) -> dict:
     """The exporter's metadata of an ONNX file (one ValueError line when the file has none)."""
     return _metadata(_ort_api("runner")(str(path), providers=["CPUExecutionProvider"]), path)
@@ -47,9 +52,11 @@ class OnnxPolicy:
     """An exported chunk sampler loaded into onnxruntime (`self.runner`).
 
     `threads`: onnxruntime's intra-op threads (1: one core, the control-loop setting; 0: its default);
-    `providers`: onnxruntime execution providers (None: CPU)."""
+    `spinning`: with several threads, let them spin between runs (lower latency on cores of their own;
+    off, they sleep and leave the cores to other work); `providers`: onnxruntime execution providers
+    (None: CPU)."""
 
-    def __init__(self, path: str | Path, threads: int = 1, providers: Optional[list] = None):
+    def __init__(self, path: str | Path, threads: int = 1, providers: Optional[list] = None, spinning: bool = False):
         try:
             import onnxruntime as ort
         except ImportError:
@@ -64,6 +71,7 @@ class OnnxPolicy:
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        _ort_config(opts, "intra_op.allow_spinning", "1" if spinning else "0")
         try:
             self.runner = _ort_api("runner")(str(path), opts, providers=providers or ["CPUExecutionProvider"])
         except Exception as err:    # onnxruntime raises its own Fail/InvalidGraph kinds
