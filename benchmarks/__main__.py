@@ -2,6 +2,7 @@
 python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)
 python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchmark, benchmarks/multimodal.py)
 python -m benchmarks cameras [...]   (image- against state-conditioned policies, benchmarks/cameras.py)
+python -m benchmarks export [...]   (eager, compiled and onnxruntime latency per chunk, benchmarks/export.py)
 """
 
 from __future__ import annotations
@@ -26,6 +27,10 @@ def main(argv: list[str] | None = None) -> int:
         from .multimodal import main as multimodal_main
 
         return multimodal_main(argv[1:])
+    if argv[:1] == ["export"]:
+        from .export import main as export_main
+
+        return export_main(argv[1:])
     if argv[:1] == ["cameras"]:
         from .cameras import main as cameras_main
 

@@ -580,3 +580,16 @@ def test_quality_rows_keep_replanning_apart_and_weight_tasks(monkeypatch, tmp_pa
             if (r["decoder"], r["sampler"], r["steps"]) == ("flow_matching", "ode", 10)}
     assert set(rows) == {4, 8} and rows[8]["success_rate"] == 0.5 and rows[4]["n"] == 11
     assert rows[4]["success_rate"] == pytest.approx((0.9 + 8.0) / 11)
+
+
+def test_export_benchmark_writes_its_page_and_json(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from benchmarks.export import main
+
+    out = tmp_path / "bench"
+    assert main(["--tiny", "--no-compile", "--rounds", "1", "--warmup", "0", "--cases", "mean_flow:1",
+                 "--batches", "1", "--out", str(out)]) == 0
+    rows = json.loads((out / "export.json").read_text())["rows"]
+    assert [(r["decoder"], r["steps"], r["batch"]) for r in rows] == [("mean_flow", 1, 1)]
+    assert rows[0]["max_abs_diff"]["ort"] <= 1e-4 and rows[0]["limit_ms"] > 0
+    assert "| MeanFlow | 1 | 1 |" in (out / "export.md").read_text()

@@ -240,3 +240,10 @@ def test_plugin_config_carries_the_noise_actor():
     assert (core.noise_actor_hidden, core.noise_actor_bound) == (32, 1.5)
     policy = ActionDecoderPolicy(core)
     assert policy.noise_actor is not None and math.isclose(policy.noise_actor.bound, 1.5)
+
+
+def test_export_refuses_a_noise_actor_policy_in_one_line(tmp_path):
+    pytest.importorskip("onnx")
+    policy = dsrl_policy(_bc(), hidden=16, bound=2.5, steps=None)
+    with pytest.raises(ValueError, match="^noise_actor_hidden: a noise-space"):
+        policy.export_onnx(tmp_path / "p.onnx")

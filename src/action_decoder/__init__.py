@@ -4,13 +4,19 @@ SDE samplers, for vision-language-action robot policies.
 Time convention (the whole library): t = 0 is the Gaussian prior, t = 1 is data.
 """
 
-from .config import DecoderConfig
-from .policy import ActionDecoderPolicy, PolicyOutput
-from .flows import (ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, SDEResult,
-                    chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
-                    meanflow_target, sample_ddpm, sample_meanflow, sample_ode, sample_sde,
-                    time_grid, velocity_from_meanflow, velocity_from_sample, rtc_weights,
-                    sample_ode_rtc, sample_meanflow_rtc, sample_sde_rtc)
+try:
+    import torch as _torch  # noqa: F401
+except ImportError:     # `action_decoder.runtime` (onnxruntime + NumPy) runs an exported policy without PyTorch
+    _torch = None
+
+if _torch is not None:
+    from .config import DecoderConfig
+    from .policy import ActionDecoderPolicy, PolicyOutput
+    from .flows import (ChurnSigma, ExploringSigma, FixedSigma, LearnableSigma, SDEResult,
+                        chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
+                        meanflow_target, sample_ddpm, sample_meanflow, sample_ode, sample_sde,
+                        time_grid, velocity_from_meanflow, velocity_from_sample, rtc_weights,
+                        sample_ode_rtc, sample_meanflow_rtc, sample_sde_rtc)
 
 __version__ = "0.1.0"
 

@@ -1,4 +1,4 @@
-"""`action-decoder` console script: train, eval, finetune, record, convert (every option from a dataclass, via tyro)."""
+"""`action-decoder` console script: train, eval, finetune, record, convert, export (every option from a dataclass, via tyro)."""
 
 from __future__ import annotations
 
@@ -40,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     from .evaluate import EvalConfig, run_eval
+    from .export import ExportConfig, run_export
     from .lerobot_checkpoint import ConvertConfig, run_convert
     from .record import RecordConfig, run_record
     from .rl import FinetuneConfig, finetune
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
     commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "record": RecordConfig,
-                "convert": ConvertConfig}
+                "convert": ConvertConfig, "export": ExportConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
         if hasattr(cfg, "device"):
@@ -67,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
             run_record(cfg)
         elif isinstance(cfg, ConvertConfig):
             run_convert(cfg)
+        elif isinstance(cfg, ExportConfig):
+            run_export(cfg)
         else:
             run_eval(cfg)
     except (ValueError, OSError, FloatingPointError) as err:

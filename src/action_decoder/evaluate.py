@@ -16,6 +16,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
+from .flows.paths import randn_rows
 from .policy import ActionDecoderPolicy, follow_last
 from .tracking import log_evaluation, require_wandb
 from .train import task_context
@@ -25,8 +26,12 @@ from .train import task_context
 class EvalConfig:
     """Run closed-loop episodes of a checkpoint on layouts disjoint from its demonstrations."""
 
-    checkpoint: str
-    """A save_pretrained directory (e.g. outputs/train/final) or a Hub repo id."""
+    checkpoint: Optional[str] = None
+    """A save_pretrained directory (e.g. outputs/train/final) or a Hub repo id; or pass --onnx."""
+    onnx: Optional[str] = None
+    """Evaluate this exported policy (`action-decoder export`) with onnxruntime instead of a checkpoint: same layouts and noise."""
+    compile: bool = False
+    """Sample with the torch.compile'd sampler (deterministic samplers only)."""
     episodes: int = 20
     """Episodes per task."""
     sampler: Optional[Literal["ode", "sde", "euler"]] = None
@@ -71,8 +76,16 @@ class EvalConfig:
     """Real-time chunking: condition each chunk on the previous one's remaining actions."""
 
 
+def row_generators(base: int, episode_seeds, plan_indices, device) -> list:
+    """One torch.Generator per row, seeded by (base, episode seed, plan index): row b's noise depends on
+    its own episode and plan only."""
+    seeds = [np.random.SeedSequence([base, int(e), int(p)]).generate_state(1, np.uint64)[0]
+             for e, p in zip(episode_seeds, plan_indices)]
+    return [torch.Generator(device=device).manual_seed(int(seed)) for seed in seeds]
+
+
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
-                   generator: torch.Generator, observe=None):
+                   generator: torch.Generator, sample_fn=None, observe=None):
     """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
 
     Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
@@ -81,15 +94,14 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     depend on the other episodes sharing its batch, so results do not depend on `num_envs` (up to
     float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
     `generator`. `images` [B, N_cam, 3, S, S] (as `envs.evaluate` passes them with a camera rig)
-    condition a camera policy. `observe` maps the env's states [B, 39] to what the policy reads
-    (default: as they are; LeRobot's agent position for a policy of `record --layout lerobot` data).
+    condition a camera policy. `sample_fn(batch, noise)` (`compiled.compile_sampler`), when given,
+    samples each chunk from the noise `policy.sample` would draw. `observe` maps the env's states [B, 39]
+    to what the policy reads (default: as they are; LeRobot's agent position for a policy of
+    `record --layout lerobot` data).
     """
     device = next(policy.parameters()).device
     base = generator.initial_seed()
-
-    def row_generator(episode_seed, plan_index) -> torch.Generator:
-        seed = np.random.SeedSequence([base, int(episode_seed), int(plan_index)]).generate_state(1, np.uint64)[0]
-        return torch.Generator(device=device).manual_seed(int(seed))
+    cfg = policy.config
 
     @torch.no_grad()
     def policy_fn(states: np.ndarray, task_index: np.ndarray, episode_seeds: Optional[np.ndarray] = None,
@@ -107,7 +119,12 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
                 raise ValueError(f"episode_seeds, plan_indices: expected both, one per state row ({len(states)}), got "
                                  f"{None if episode_seeds is None else len(episode_seeds)} and "
                                  f"{None if plan_indices is None else len(plan_indices)}")
-            gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
+            gens = row_generators(base, episode_seeds, plan_indices, device)
+        if sample_fn is not None:
+            if prev_chunks is not None:
+                raise ValueError("--compile: the compiled sampler has no real-time chunking (prev_chunks); drop --rtc")
+            noise = randn_rows(len(states), (cfg.action_chunk_size, cfg.action_dim), gens, device)   # [B, H, D]
+            return sample_fn(batch, noise).float().cpu().numpy()
         prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
         out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
                             prev_chunk=prev, delay=delay)                                # prev [B, L, D]
@@ -144,6 +161,13 @@ EPISODE_CAP = 500
 
 
 def run_eval(cfg: EvalConfig) -> dict:
+    if (cfg.checkpoint is None) == (cfg.onnx is None):
+        raise ValueError(f"--checkpoint, --onnx: expected exactly one of them, got checkpoint={cfg.checkpoint!r} "
+                         f"and onnx={cfg.onnx!r}")
+    if cfg.onnx is not None:
+        from .evaluate_onnx import run_eval_onnx
+
+        return run_eval_onnx(cfg)
     if cfg.episodes < 1 or cfg.steps < 0:
         raise ValueError(f"--episodes/--steps: expected episodes >= 1 and steps >= 0, got {cfg.episodes}, {cfg.steps}")
     require_wandb(cfg.wandb)
@@ -185,10 +209,19 @@ def run_eval(cfg: EvalConfig) -> dict:
     steps = cfg.steps or None
     out = summary_path(cfg, policy, n_exec, steps, tasks, trained)
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    sample_fn = None
+    if cfg.compile:
+        from .compiled import check_compile, compile_sampler
+
+        check_compile()
+        if cfg.rtc:
+            raise ValueError("--compile: the compiled sampler has no real-time chunking; drop --rtc")
+        sample_fn = compile_sampler(policy, cfg.sampler, steps)
     lerobot = policy.config.extra.get("observation_layout") == "lerobot"
     if lerobot:
         from .envs.lerobot_view import agent_pos
-    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator, observe=agent_pos if lerobot else None)
+    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator, sample_fn,
+                        observe=agent_pos if lerobot else None)
     results, videos = [], {}
     video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:

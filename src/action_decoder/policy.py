@@ -528,6 +528,17 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         """Forget queued actions (call at every episode start)."""
         self._queue.clear()
 
+    def export_onnx(self, path: str | Path, steps: Optional[int] = None, batch_size: int = 1,
+                    sampler: Optional[str] = None, context_length: Optional[int] = -1,
+                    exporter: str = "torchscript") -> Path:
+        """Write the deterministic sampler (normalisation, the K steps unrolled, un-normalisation, squash) as
+        one ONNX graph `path` that maps `observation.state` and `noise` (+ context, camera frames) to the
+        chunk in env units; run it with `action_decoder.runtime.OnnxPolicy`. Arguments: `export.export_onnx`."""
+        from .export import export_onnx
+
+        return export_onnx(self, path, steps=steps, batch_size=batch_size, sampler=sampler,
+                           context_length=context_length, exporter=exporter)
+
     # ------------------------------------------------------------------ persistence
     def save_pretrained(self, save_directory: str | Path, *, config: Any = None, repo_id: Optional[str] = None,
                         push_to_hub: bool = False, model_card_kwargs: Optional[dict] = None,

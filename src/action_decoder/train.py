@@ -122,6 +122,8 @@ class TrainConfig:
     """Share of a --dataset's episodes held out for validation, the last ones (0: none)."""
     device: str = "auto"
     """auto (CUDA when available, else CPU), cpu, cuda, cuda:N, or another torch device."""
+    compile: bool = False
+    """torch.compile the network for the training steps (inductor; on a CPU it needs a C compiler)."""
     progress: bool = True
     """A progress bar on stderr when stderr is a terminal."""
     wandb: bool = False
@@ -594,6 +596,11 @@ def _train(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> Pat
     loss_gen = torch.Generator(device=device).manual_seed(cfg.seed * 1000 + 500 + rank)
     start, history = 0, []
     ema = weight_average(policy, cfg.ema_decay)
+    if cfg.compile:                 # after the EMA's copy: the average stays a plain module
+        from .compiled import check_compile, compile_network
+
+        check_compile()
+        compile_network(policy)
 
     if resumed is not None:
         ckpt, loaded, state = resumed

@@ -23,6 +23,8 @@ def forward_ad_active(*tensors: Tensor | None) -> bool:
     level) and `torch.func.jvp`/`jacfwd`/`linearize` at any nesting depth (a Jvp transform
     on functorch's interpreter stack, seen even where inner transforms hide the tangent).
     """
+    if torch.compiler.is_compiling():   # compiled graphs (`compiled.py`) never run under forward-mode AD
+        return False
     if any(t is not None and fwAD.unpack_dual(t).tangent is not None for t in tensors):
         return True
     stack = torch._C._functorch.get_interpreter_stack() or ()

@@ -1,0 +1,72 @@
+"""Compiled PyTorch paths: `torch.compile` of the whole deterministic sampler and of the network.
+
+`compile_sampler` compiles `export.ChunkSampler` (the graph `export_onnx` writes: normalisation, the K
+network calls unrolled, un-normalisation, squash) for fixed input shapes; on a CUDA device its mode
+defaults to "reduce-overhead" (CUDA graphs: one launch per chunk), elsewhere to inductor's default.
+`compile_network` compiles the Action Expert in place for training (`train --compile`): weights,
+state_dict keys and checkpoints are unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from .export import ChunkSampler, export_refusal
+
+if TYPE_CHECKING:
+    from .policy import ActionDecoderPolicy
+
+
+def check_compile() -> None:
+    """Refuse `--compile` in one line where inductor cannot build kernels on this machine."""
+    import shutil
+
+    if not hasattr(torch, "compile"):
+        raise ValueError(f"--compile: torch {torch.__version__} has no torch.compile")
+    if not torch.cuda.is_available() and shutil.which("gcc") is None and shutil.which("cc") is None:
+        raise ValueError("--compile: torch.compile builds CPU kernels with a C compiler, and none (gcc, cc) is on PATH")
+
+
+def _mode(policy: "ActionDecoderPolicy", mode: Optional[str]) -> Optional[str]:
+    device = next(policy.parameters()).device
+    return mode if mode is not None else ("reduce-overhead" if device.type == "cuda" else None)
+
+
+def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None, steps: Optional[int] = None,
+                    mode: Optional[str] = None, backend: str = "inductor") -> Callable[..., Tensor]:
+    """fn(batch, noise [B, H, D]) → chunk [B, H, D] (env units): `predict_action_chunk(batch, noise=noise)`
+    as one compiled graph. `batch` holds "state" and, where the policy uses them, "context" (+
+    "context_mask") and "images". `mode`: torch.compile's (None: "reduce-overhead" on CUDA, else the
+    default); `backend`: torch.compile's. A new batch size or context length compiles once more."""
+    refusal = export_refusal(policy, sampler)
+    if refusal:
+        raise ValueError(refusal)
+    module = ChunkSampler(policy, sampler, steps).eval()
+    mode = _mode(policy, mode) if backend == "inductor" else None
+    compiled = torch.compile(module, mode=mode, backend=backend, fullgraph=True, dynamic=False)
+
+    @torch.no_grad()
+    def sample(batch: Mapping[str, Any], noise: Tensor) -> Tensor:
+        policy._check_noise(batch, noise)
+        device = noise.device
+        ctx, mask, images = batch.get("context"), batch.get("context_mask"), batch.get("images")
+        if ctx is not None and mask is None:
+            mask = torch.ones(ctx.shape[:2], dtype=torch.bool, device=device)
+        return compiled(batch["state"].to(device), noise, ctx, None if mask is None else mask.bool(), images)
+
+    sample.sampler, sample.steps = module.sampler, module.steps
+    return sample
+
+
+def compile_network(policy: "ActionDecoderPolicy", mode: Optional[str] = None,
+                    backend: str = "inductor") -> "ActionDecoderPolicy":
+    """Compile the policy's network in place (`nn.Module.compile`) for training; returns the policy."""
+    if policy.config.decoder_type == "mean_flow" and policy.config.meanflow_dudt == "jvp":
+        raise ValueError("--compile: MeanFlow's meanflow_dudt='jvp' differentiates the network with "
+                         "torch.func.jvp, which the compiled network does not support; use "
+                         "meanflow_dudt='finite_difference' (the default) or drop --compile")
+    policy.model.compile(mode=mode, backend=backend)
+    return policy
