@@ -39,7 +39,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 6
+CONFIG_FORMAT_VERSION = 7
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -49,6 +49,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
+    7: {"rtc_max_delay": 0},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -127,6 +128,12 @@ class DecoderConfig:
     # matching, whose Jᵀ-guidance is re-projected by the later steps, and execution for MeanFlow,
     # whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both).
     rtc_horizon: str = "auto"
+    # Training-time RTC (`flows/rtc_trained.py`): the largest delay d, in control steps, whose committed
+    # prefix the network was trained to continue (each training chunk's first d ~ U{0..max} actions given
+    # clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
+    # the prefix in (`rtc_mode="trained"`) instead of guiding. Below action_chunk_size; not for DDPM.
+    # Format-6 files, older than the field, read as 0.
+    rtc_max_delay: int = 0
     # --- the Action Expert network ---
     state_dim: int = 39
     action_dim: int = 4
@@ -191,6 +198,13 @@ class DecoderConfig:
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
+        if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
+            raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "
+                             f"training-time RTC), got {self.rtc_max_delay!r}")
+        if self.rtc_max_delay and self.decoder_type == "DDPM":
+            raise ValueError(f"rtc_max_delay: training-time real-time chunking needs a flow_matching or mean_flow "
+                             f"decoder (DPM-Solver++ samples one time per chunk), got decoder_type='DDPM' with "
+                             f"rtc_max_delay={self.rtc_max_delay}")
         _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         _choice("meanflow_target", self.meanflow_target, MEANFLOW_TARGETS)
         if self.flow_sde_t_min is not None:
@@ -218,6 +232,9 @@ class DecoderConfig:
                              f"got {self.meanflow_ratio_r_neq_t!r}")
         if self.flow_sde_clip_t >= 1.0:
             raise ValueError(f"flow_sde_clip_t: expected a value in (0, 1), got {self.flow_sde_clip_t!r}")
+        if self.rtc_max_delay >= self.action_chunk_size:
+            raise ValueError(f"rtc_max_delay: expected fewer control steps than action_chunk_size="
+                             f"{self.action_chunk_size} (rows must remain to generate), got {self.rtc_max_delay}")
         if self.n_action_steps > self.action_chunk_size:
             raise ValueError(f"n_action_steps: expected at most action_chunk_size="
                              f"{self.action_chunk_size}, got {self.n_action_steps}")

@@ -76,10 +76,12 @@ class EvalConfig:
     rtc: bool = False
     """Real-time chunking: condition each new chunk on the old chunk's remaining actions (its first
     `delay` ones frozen; flow_matching and mean_flow). Off: the chunks switch naively."""
+    rtc_mode: Optional[Literal["trained", "guided"]] = None
+    """With --rtc: trained (feed the committed prefix; checkpoints trained with --rtc-max-delay) or guided (guidance towards the old chunk); default: trained when the checkpoint has it."""
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
-                   generator: torch.Generator):
+                   generator: torch.Generator, rtc_mode: Optional[str] = None):
     """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
 
     Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
@@ -88,7 +90,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     depend on the other episodes sharing its batch, so results do not depend on `num_envs` (up to
     float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
     `generator`. `images` [B, N_cam, 3, S, S] (as `envs.evaluate` passes them with a camera rig)
-    condition a camera policy.
+    condition a camera policy. `rtc_mode` goes to `policy.sample` with `prev_chunks` (real-time chunking;
+    the rows each new chunk executes are those prev_chunks' length implies, H − L).
     """
     device = next(policy.parameters()).device
     base = generator.initial_seed()
@@ -115,7 +118,7 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
             gens = [row_generator(e, p) for e, p in zip(episode_seeds, plan_indices)]
         prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
         out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
-                            prev_chunk=prev, delay=delay)                                # prev [B, L, D]
+                            prev_chunk=prev, delay=delay, rtc_mode=rtc_mode)             # prev [B, L, D]
         return out.actions.float().cpu().numpy()                                            # [B, H, D]
 
     return policy_fn
@@ -144,6 +147,10 @@ def run_eval(cfg: EvalConfig) -> dict:
                          f"{policy.config.action_chunk_size}), got {cfg.delay}")
     if cfg.rtc and policy.config.decoder_type == "DDPM":
         raise ValueError("--rtc: real-time chunking needs a flow_matching or mean_flow checkpoint, got DDPM")
+    if cfg.rtc_mode is not None and not cfg.rtc:
+        raise ValueError(f"--rtc-mode: chooses how --rtc conditions each new chunk; got --rtc-mode {cfg.rtc_mode} "
+                         f"without --rtc")
+    rtc_mode = policy.resolve_rtc_mode(cfg.rtc_mode, cfg.delay, cfg.sampler) if cfg.rtc else None
     trained = list(policy.config.extra.get("tasks") or [])
     tasks = resolve_tasks(cfg.task) if cfg.task else trained
     if not tasks:
@@ -159,7 +166,7 @@ def run_eval(cfg: EvalConfig) -> dict:
     steps = cfg.steps or None
     out = summary_path(cfg, policy, n_exec, steps, tasks, trained)
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
-    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator)
+    fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator, rtc_mode)
     results, videos = [], {}
     video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:
@@ -195,7 +202,7 @@ def run_eval(cfg: EvalConfig) -> dict:
         "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec, "max_steps": cfg.max_steps,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
-        "delay": cfg.delay, "rtc": cfg.rtc,
+        "delay": cfg.delay, "rtc": cfg.rtc, "rtc_mode": rtc_mode,
         "boundary_jerk": _mean_jerk(results),
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
@@ -211,12 +218,13 @@ def summary_path(cfg: EvalConfig, policy: ActionDecoderPolicy, n_exec: int, step
                  trained: list) -> Path:
     """Where the summary goes: `--output` (a file, or a directory that gets the default name), else the
     checkpoint directory under a name that holds every setting of a model-card row, so that no two
-    settings share a file: `eval_<sampler>_k<K>_n<n>[_d<delay>][_rtc]_seed<s>_e<episodes>[_t<cap>]
+    settings share a file: `eval_<sampler>_k<K>_n<n>[_d<delay>][_rtc[-<rtc_mode>]]_seed<s>_e<episodes>[_t<cap>]
     [_on-<tasks>].json` (`_on-`: tasks other than the trained ones)."""
     from .envs import MAX_EPISODE_STEPS, canonical_task
 
     cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
-    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
+    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "") + \
+        (f"-{cfg.rtc_mode}" if cfg.rtc and cfg.rtc_mode else "")
     names = sorted(dict.fromkeys(canonical_task(t) for t in tasks))
     if names == sorted(trained):
         where = ""
