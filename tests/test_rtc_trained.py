@@ -275,3 +275,56 @@ def test_cli_round_trip_train_rtc_max_delay_then_eval_rtc_mode(tmp_path, monkeyp
     assert cli.main(args[:-3] + ["--rtc-mode", "trained"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "--rtc-mode: chooses how --rtc conditions" in err
+
+
+# ---------------------------------------------------------------------------- the benchmark's measures
+class _RoutePolicy:
+    """A stand-in policy: with a previous chunk it continues it; without one it takes route +1."""
+
+    config = DecoderConfig(decoder_type="flow_matching", state_dim=4, action_dim=4)
+
+    def sample(self, batch, steps=None, generator=None, prev_chunk=None, delay=0, rtc_mode=None):
+        from types import SimpleNamespace
+
+        from benchmarks.multimodal import routes
+        if prev_chunk is None:
+            return SimpleNamespace(actions=routes(batch["state"])[:, 0])
+        pad = prev_chunk[:, -1:].expand(-1, 16 - prev_chunk.shape[1], -1)
+        return SimpleNamespace(actions=torch.cat([prev_chunk, pad], 1))
+
+
+def test_synthetic_route_consistency_counts_re_plans_that_keep_the_committed_route():
+    from benchmarks.rtc_modes import run_synthetic
+
+    fake = _RoutePolicy()
+    rows = run_synthetic({"flow_matching": {"plain": fake, "rtc": fake}}, states=64, samples=2, seed=0)
+    by = {(r["delay"], r["arm"]): r for r in rows}
+    assert by[(2, "trained")]["route_consistency"] == 1.0 and by[(2, "trained")]["off_route"] == 0.0
+    assert 0.3 < by[(2, "naive")]["route_consistency"] < 0.7          # route +1 against a 50/50 committed route
+    assert by[(2, "trained")]["switch_jerk"] < by[(2, "naive")]["switch_jerk"]
+    assert "mode_metrics" in by[(0, "naive")] and "mode_metrics" not in by[(2, "naive")]
+
+
+def test_obstacle_episode_with_delay_runs_the_scripted_expert_to_the_goal_on_one_route():
+    """The scripted expert (above) as the policy: every re-plan keeps the route, and the delayed
+    loop executes the old chunk's actions while the new one is planned."""
+    import numpy as np
+
+    from action_decoder.envs.obstacle_routes import SPEED, expert_action
+    from benchmarks.rtc_modes import obstacle_episode
+
+    class Expert:
+        config = DecoderConfig(decoder_type="flow_matching", state_dim=6, action_dim=2)
+
+        def sample(self, batch, **kw):
+            from types import SimpleNamespace
+            obs, out = batch["state"][0].numpy().copy(), []
+            for _ in range(16):
+                a = expert_action(obs, 1)
+                out.append(a)
+                obs[:2] = obs[:2] + SPEED * np.clip(a, -1, 1)
+            return SimpleNamespace(actions=torch.from_numpy(np.stack(out))[None])
+
+    for d in (0, 2, 4):
+        res = obstacle_episode(Expert(), 1, "trained", d, layout=1_000_000, noise_seed=0)
+        assert res["success"] and not res["collided"] and res["checks"] and all(res["checks"])
