@@ -326,8 +326,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     from action_decoder.envs import evaluate
     from action_decoder.evaluate import make_policy_fn
 
-    ckpts = {"plain": train_metaworld(task, decoder, Path(args.runs), 0),
-             "rtc": train_metaworld(task, decoder, Path(args.runs), MAX_DELAY)}
+    need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
+    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0) for k in sorted(need)}
     pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
     rows = []
     for arm in args.arms:
