@@ -223,7 +223,6 @@ def run_multimodal(args, command: str) -> None:
     runs = Path(args.runs) / "multimodal"
     decoders = sorted({d for d, _ in args.settings})
     out = Path(args.multimodal_json)
-    rows = json.loads(out.read_text()) if out.is_file() else []
     for task in args.multimodal:
         if task == "synthetic":
             pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4)
@@ -243,6 +242,7 @@ def run_multimodal(args, command: str) -> None:
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
         key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"])     # noqa: E731
+        rows = json.loads(out.read_text()) if out.is_file() else []                              # read now: runs may overlap
         rows = [r for r in rows if key(r) not in {key(n) for n in new}] + new
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(rows, indent=1))
