@@ -256,7 +256,7 @@ def main(argv=None) -> None:
     p.add_argument("--mm-states", type=int, default=256, help="synthetic: states per cell")
     p.add_argument("--mm-samples", type=int, default=4, help="synthetic: re-plans per state")
     p.add_argument("--mm-episodes", type=int, default=50, help="obstacle routes: episodes per cell")
-    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--episodes", type=int, default=None, help="Meta-World episodes per task and cell (default 50; horizons: 20)")
     p.add_argument("--seed", type=int, default=0, help="evaluation seed; rows of several seeds are pooled")
     p.add_argument("--num-envs", type=int, default=10)
     p.add_argument("--latency-reps", type=int, default=30)
@@ -300,6 +300,7 @@ def main(argv=None) -> None:
         from benchmarks.rtc_modes import run_metaworld
 
         args.delays = args.delays or [0, 1, 2, 4]
+        args.episodes = args.episodes or 50
         modes = Path(args.modes_json)
         for task in args.tasks:
             for decoder, steps in settings:
@@ -311,6 +312,7 @@ def main(argv=None) -> None:
                 page(rows)
     if args.part == "horizons":
         args.delays = args.delays or [0, 2, 4]
+        args.episodes = args.episodes or 20
         for task in args.tasks:
             for decoder, steps in settings:
                 ckpt = train(task, decoder, Path(args.runs))
