@@ -239,8 +239,9 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
-    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons"], default="all",
-                   help="all: multimodal, then metaworld (naive / guided / trained); horizons: the guidance horizons")
+    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency"], default="all",
+                   help="all: multimodal, then metaworld (naive / guided / trained); horizons: the guidance horizons; "
+                        "latency: re-time the rows of --multimodal-json and --modes-json")
     p.add_argument("--tasks", nargs="+", default=TASKS)
     p.add_argument("--delays", nargs="+", type=int, default=None,
                    help="simulated inference delays in control steps (default 0 1 2 4; horizons: 0 2 4)")
@@ -275,6 +276,11 @@ def main(argv=None) -> None:
                                    or "python -m benchmarks rtc --part horizons")
     if args.latency_only:
         retime(Path(args.json), args)
+        args.page_only = True
+    if args.part == "latency":
+        from benchmarks.rtc_modes import retime as retime_modes
+
+        retime_modes(args)
         args.page_only = True
     if args.page_only:
         page(json.loads(Path(args.json).read_text()))
