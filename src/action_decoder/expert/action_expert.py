@@ -113,7 +113,7 @@ class ActionExpert(nn.Module):
         else:
             t_tok, t_off = self._token_times(self.t_embed, t, b, horizon)
             r_tok, r_off = self._token_times(self.r_embed, r, b, horizon)
-            actions = actions + t_off + r_off
+            actions = actions + (t_off + r_off)
         tokens = torch.cat([
             torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq),
                          self.state_in(state.to(dtype))], dim=1),                 # [B, 4, hidden]
@@ -165,10 +165,10 @@ class ActionExpert(nn.Module):
         embeds each sample's earliest time; an action token whose time differs from it is offset by
         embed(own) − embed(earliest), one where its time equals it by exactly 0."""
         full = v[:, None].expand(b, horizon) if v.dim() == 1 else v                  # [B, H]
-        first = full.min(1).values                                                  # [B]
+        first = full.amin(1)                                                        # [B]
         emb = embed(torch.cat([first, full.reshape(-1)]))                           # [B + B·H, hidden]
-        tok, own = emb[:b], emb[b:].reshape(b, horizon, -1)
-        off = torch.where((full != first[:, None])[..., None], own - tok[:, None], torch.zeros_like(own))
+        tok = emb[:b]
+        off = (emb[b:].view(b, horizon, -1) - tok[:, None]) * (full != first[:, None])[..., None]
         return tok, off
 
     @staticmethod

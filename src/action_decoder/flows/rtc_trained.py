@@ -50,8 +50,7 @@ def prefix_mask(delays: Tensor, horizon: int) -> Tensor:
 
 def token_times(t: Tensor, keep: Tensor) -> Tensor:
     """Times per token [B, H]: 1 on the kept rows, t ([B] or [B, H]) elsewhere."""
-    t = t[:, None] if t.dim() == 1 else t
-    return torch.where(keep, torch.ones_like(t), t).expand(keep.shape)
+    return (t[:, None] if t.dim() == 1 else t).expand(keep.shape).masked_fill(keep, 1.0)
 
 
 def with_clean_prefix(fn: Callable[..., Tensor]) -> Callable[..., Tensor]:
@@ -89,10 +88,10 @@ def sample_ode_prefix(velocity: Velocity, noise: Tensor, prefix: Tensor, steps: 
     dtype = compute_dtype(noise)
     x, keep, clean = _prefixed_start(noise, prefix, dtype)
     st = resolve_steps(steps, None, noise, dtype)
-    mask = keep[..., None]
+    live = (~keep)[..., None].to(dtype)                # the prefix rows of x stay clean: they never move
     for t, dt in zip(st.starts, st.dts):
         v = checked_call(velocity, x, token_times(t, keep), dtype=dtype, name="velocity")
-        x = torch.where(mask, clean, x + dt * v)
+        x = torch.addcmul(x, v, live, value=dt)
     return x.to(noise.dtype)
 
 
@@ -102,9 +101,9 @@ def sample_meanflow_prefix(avg_velocity: AvgVelocity, noise: Tensor, prefix: Ten
     dtype = compute_dtype(noise)
     x, keep, clean = _prefixed_start(noise, prefix, dtype)
     st = resolve_steps(steps, None, noise, dtype)
-    mask = keep[..., None]
+    live = (~keep)[..., None].to(dtype)
     for t, r, dt in zip(st.starts, st.ends, st.dts):
         u = checked_call(avg_velocity, x, token_times(t, keep), token_times(r, keep), dtype=dtype,
                          name="avg_velocity")
-        x = torch.where(mask, clean, x + dt * u)
+        x = torch.addcmul(x, u, live, value=dt)
     return x.to(noise.dtype)
