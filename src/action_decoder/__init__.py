@@ -16,7 +16,8 @@ if _torch is not None:
                         chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
                         meanflow_target, sample_ddpm, sample_meanflow, sample_ode, sample_sde,
                         time_grid, velocity_from_meanflow, velocity_from_sample, rtc_weights,
-                        sample_ode_rtc, sample_meanflow_rtc, sample_sde_rtc)
+                        sample_ode_rtc, sample_meanflow_rtc, sample_sde_rtc, sample_ode_prefix,
+                        sample_meanflow_prefix)
 
 __version__ = "0.1.0"
 
@@ -24,4 +25,5 @@ __all__ = ["ActionDecoderPolicy", "PolicyOutput", "ChurnSigma", "DecoderConfig",
            "SDEResult", "chain_log_prob", "ddpm_loss", "flow_matching_loss", "make_sigma",
            "meanflow_loss", "meanflow_target", "sample_ddpm", "sample_meanflow", "sample_ode",
            "sample_sde", "time_grid", "velocity_from_meanflow", "velocity_from_sample",
-           "rtc_weights", "sample_ode_rtc", "sample_meanflow_rtc", "sample_sde_rtc"]
+           "rtc_weights", "sample_ode_rtc", "sample_meanflow_rtc", "sample_sde_rtc", "sample_ode_prefix",
+           "sample_meanflow_prefix"]

@@ -49,7 +49,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
         "rtc_horizon": "overlap"},
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
-    7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False},
+    7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -155,6 +155,12 @@ class DecoderConfig:
     s = n_action_steps; later rows are re-planned anyway and stay free). "auto": overlap for flow
     matching, whose Jᵀ-guidance is re-projected by the later steps, and execution for MeanFlow,
     whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both)."""
+    rtc_max_delay: int = 0
+    """Training-time RTC (`flows/rtc_trained.py`): the largest delay d, in control steps, whose committed
+    prefix the network was trained to continue (each training chunk's first d ~ U{0..max} actions given
+    clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
+    the prefix in (`rtc_mode="trained"`) instead of guiding. Below action_chunk_size; not for DDPM.
+    Format-6 files, older than the field, read as 0."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""
@@ -258,6 +264,13 @@ class DecoderConfig:
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
+        if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
+            raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "
+                             f"training-time RTC), got {self.rtc_max_delay!r}")
+        if self.rtc_max_delay and self.decoder_type == "DDPM":
+            raise ValueError(f"rtc_max_delay: training-time real-time chunking needs a flow_matching or mean_flow "
+                             f"decoder (DPM-Solver++ samples one time per chunk), got decoder_type='DDPM' with "
+                             f"rtc_max_delay={self.rtc_max_delay}")
         _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         _choice("meanflow_target", self.meanflow_target, MEANFLOW_TARGETS)
         if self.flow_sde_t_min is not None:
@@ -290,6 +303,9 @@ class DecoderConfig:
                              f"got {self.meanflow_ratio_r_neq_t!r}")
         if self.flow_sde_clip_t >= 1.0:
             raise ValueError(f"flow_sde_clip_t: expected a value in (0, 1), got {self.flow_sde_clip_t!r}")
+        if self.rtc_max_delay >= self.action_chunk_size:
+            raise ValueError(f"rtc_max_delay: expected fewer control steps than action_chunk_size="
+                             f"{self.action_chunk_size} (rows must remain to generate), got {self.rtc_max_delay}")
         if self.n_action_steps > self.action_chunk_size:
             raise ValueError(f"n_action_steps: expected at most action_chunk_size="
                              f"{self.action_chunk_size}, got {self.n_action_steps}")

@@ -73,7 +73,10 @@ class EvalConfig:
     delay: int = 0
     """Simulated inference delay in control steps (0..n_action_steps)."""
     rtc: bool = False
-    """Real-time chunking: condition each chunk on the previous one's remaining actions."""
+    """Real-time chunking: condition each new chunk on the old chunk's remaining actions (its first
+    `delay` ones frozen; flow_matching and mean_flow). Off: the chunks switch naively."""
+    rtc_mode: Optional[Literal["trained", "guided"]] = None
+    """With --rtc: trained (feed the committed prefix; checkpoints trained with --rtc-max-delay) or guided (guidance towards the old chunk); default: trained when the checkpoint has it."""
 
 
 def row_generators(base: int, episode_seeds, plan_indices, device) -> list:
@@ -85,7 +88,7 @@ def row_generators(base: int, episode_seeds, plan_indices, device) -> list:
 
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
-                   generator: torch.Generator, sample_fn=None, observe=None):
+                   generator: torch.Generator, sample_fn=None, observe=None, rtc_mode: Optional[str] = None):
     """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
 
     Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
@@ -97,7 +100,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     condition a camera policy. `sample_fn(batch, noise)` (`compiled.compile_sampler`), when given,
     samples each chunk from the noise `policy.sample` would draw. `observe` maps the env's states [B, 39]
     to what the policy reads (default: as they are; LeRobot's agent position for a policy of
-    `record --layout lerobot` data).
+    `record --layout lerobot` data). `rtc_mode` goes to `policy.sample` with `prev_chunks` (real-time
+    chunking; the rows each new chunk executes are those prev_chunks' length implies, H − L).
     """
     device = next(policy.parameters()).device
     base = generator.initial_seed()
@@ -127,7 +131,7 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
             return sample_fn(batch, noise).float().cpu().numpy()
         prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
         out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
-                            prev_chunk=prev, delay=delay)                                # prev [B, L, D]
+                            prev_chunk=prev, delay=delay, rtc_mode=rtc_mode)             # prev [B, L, D]
         return out.actions.float().cpu().numpy()                                            # [B, H, D]
 
     return policy_fn
@@ -194,6 +198,10 @@ def run_eval(cfg: EvalConfig) -> dict:
                          f"{policy.config.action_chunk_size}), got {cfg.delay}")
     if cfg.rtc and policy.config.decoder_type == "DDPM":
         raise ValueError("--rtc: real-time chunking needs a flow_matching or mean_flow checkpoint, got DDPM")
+    if cfg.rtc_mode is not None and not cfg.rtc:
+        raise ValueError(f"--rtc-mode: chooses how --rtc conditions each new chunk; got --rtc-mode {cfg.rtc_mode} "
+                         f"without --rtc")
+    rtc_mode = policy.resolve_rtc_mode(cfg.rtc_mode, cfg.delay, cfg.sampler) if cfg.rtc else None
     trained = list(policy.config.extra.get("tasks") or [])
     tasks = resolve_tasks(cfg.task) if cfg.task else trained
     if not tasks:
@@ -221,7 +229,7 @@ def run_eval(cfg: EvalConfig) -> dict:
     if lerobot:
         from .envs.lerobot_view import agent_pos
     fn = make_policy_fn(policy, len(trained), cfg.sampler, steps, generator, sample_fn,
-                        observe=agent_pos if lerobot else None)
+                        observe=agent_pos if lerobot else None, rtc_mode=rtc_mode)
     results, videos = [], {}
     video_dir = tempfile.TemporaryDirectory(prefix="action_decoder_video_") if cfg.video else contextlib.nullcontext()
     for task in tasks:
@@ -257,7 +265,7 @@ def run_eval(cfg: EvalConfig) -> dict:
         "episodes_per_task": cfg.episodes, "seed": cfg.seed, "n_action_steps": n_exec, "max_steps": cfg.max_steps,
         "success_rate": float(np.mean([r["success_rate"] for r in results])),
         "per_task": {r["task"]: r["success_rate"] for r in results},
-        "delay": cfg.delay, "rtc": cfg.rtc,
+        "delay": cfg.delay, "rtc": cfg.rtc, "rtc_mode": rtc_mode,
         "boundary_jerk": _mean_jerk(results),
         "results": [{k: v for k, v in r.items() if k != "trajectories"} for r in results],
     }
@@ -273,12 +281,13 @@ def summary_path(cfg: EvalConfig, policy: ActionDecoderPolicy, n_exec: int, step
                  trained: list) -> Path:
     """Where the summary goes: `--output` (a file, or a directory that gets the default name), else the
     checkpoint directory under a name that holds every setting of a model-card row, so that no two
-    settings share a file: `eval_<sampler>_k<K>_n<n>[_d<delay>][_rtc]_seed<s>_e<episodes>[_t<cap>]
+    settings share a file: `eval_<sampler>_k<K>_n<n>[_d<delay>][_rtc[-<rtc_mode>]]_seed<s>_e<episodes>[_t<cap>]
     [_on-<tasks>].json` (`_on-`: tasks other than the trained ones)."""
     from .envs import MAX_EPISODE_STEPS, canonical_task
 
     cap = f"_t{cfg.max_steps}" if cfg.max_steps < MAX_EPISODE_STEPS else ""
-    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "")
+    timing = (f"_d{cfg.delay}" if cfg.delay else "") + ("_rtc" if cfg.rtc else "") + \
+        (f"-{cfg.rtc_mode}" if cfg.rtc and cfg.rtc_mode else "")
     names = sorted(dict.fromkeys(canonical_task(t) for t in tasks))
     if names == sorted(trained):
         where = ""

@@ -117,7 +117,8 @@ def _cap_text(row: dict) -> str:
     if row.get("max_steps") is None:
         return "episode cap and delay not recorded"
     return (f"at most {row['max_steps']} steps per episode, delay {row['delay']}"
-            + (" with real-time chunking" if row["rtc"] else ""))
+            + (" with real-time chunking" if row["rtc"] else "")
+            + (f" ({row['rtc']})" if isinstance(row["rtc"], str) else ""))
 
 
 def read_results(directory: Path) -> list[dict]:
@@ -300,7 +301,7 @@ def record_result(directory: Path, policy, summary: dict, tasks: list[str]) -> P
     row = {"tasks": list(tasks), "sampler": summary["sampler"], "steps": summary["steps"],
            "n_action_steps": summary["n_action_steps"], "episodes": summary["episodes_per_task"],
            "seed": summary["seed"], "max_steps": summary["max_steps"], "delay": summary["delay"],
-           "rtc": bool(summary["rtc"]), "success_rate": float(summary["success_rate"]),
+           "rtc": summary.get("rtc_mode") or bool(summary["rtc"]), "success_rate": float(summary["success_rate"]),
            "per_task": {k: float(v) for k, v in summary["per_task"].items()}, "weights_sha256": digest}
     results = merge_result(carried_results(read_results(directory), digest), row)
     return write_card(directory, policy.config, sum(p.numel() for p in policy.parameters()), results, digest)

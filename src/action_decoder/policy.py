@@ -24,8 +24,8 @@ from . import model_card
 from .config import MEANFLOW_VELOCITIES, SDE_MIN_STEPS, DecoderConfig
 from .expert import ActionExpert, Prefix
 from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, meanflow_loss,
-                    sample_ddpm, sample_meanflow, sample_meanflow_rtc, sample_ode, sample_ode_rtc, sample_sde,
-                    sample_sde_rtc, velocity_from_meanflow,
+                    sample_ddpm, sample_meanflow, sample_meanflow_prefix, sample_meanflow_rtc, sample_ode,
+                    sample_ode_prefix, sample_ode_rtc, sample_sde, sample_sde_rtc, velocity_from_meanflow,
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
 from .flows.samplers import gaussian_target_std
@@ -34,6 +34,7 @@ from .normalize import make_normalizers
 from .state_layout import network_state
 
 SAMPLERS = (None, "ode", "sde", "euler")
+RTC_MODES = (None, "trained", "guided")
 CONFIG_NAME, WEIGHTS_NAME = "config.json", "model.safetensors"
 
 
@@ -99,7 +100,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if config.noise_actor_hidden else None
         """The initial-noise policy of a noise-space fine-tuned checkpoint (`finetune --algo dsrl`), or None."""
         self._queue: deque = deque()
-        self._warned_proxy = self._warned_steps = False
+        self._warned_proxy = self._warned_steps = self._warned_blend = False
 
     # ------------------------------------------------------------------ batch handling
     def _validate(self, batch: Mapping[str, Any], need_actions: bool) -> None:
@@ -263,7 +264,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         actions = self.normalizers["actions"].normalize(batch["actions"].to(cond["state"].device, torch.float32))
         cfg = self.config
         if cfg.decoder_type == "flow_matching":
-            loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond)
+            loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond,
+                                      rtc_max_delay=cfg.rtc_max_delay)
         elif cfg.decoder_type == "mean_flow":
             weights = self.model.head.weight.dtype
             if (cfg.meanflow_target == "identity" and cfg.meanflow_dudt == "finite_difference"
@@ -274,7 +276,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                  ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, time_mean=cfg.meanflow_time_mean,
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
-                                 dudt=cfg.meanflow_dudt, target=cfg.meanflow_target)
+                                 dudt=cfg.meanflow_dudt, target=cfg.meanflow_target,
+                                 rtc_max_delay=cfg.rtc_max_delay)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)
@@ -325,15 +328,16 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                              steps: Optional[int] = None, return_logprob: Optional[bool] = None,
                              generator: Generators = None, noise: Optional[Tensor] = None,
                              meanflow_velocity: Optional[str] = None, prev_chunk: Optional[Tensor] = None,
-                             delay: int = 0):
+                             delay: int = 0, rtc_mode: Optional[str] = None, n_action_steps: Optional[int] = None):
         """Sample a chunk [B, H, D] in environment units.
 
         Returns the tensor, or a `PolicyOutput` when log-probs are returned (asked here, or
         by `flow_sde_return_logprob` for the SDE sampler). For gradients through sampling
-        (SAC), call `sample(...)` instead. `prev_chunk` and `delay`: real-time chunking, see `sample`.
+        (SAC), call `sample(...)` instead. `prev_chunk`, `delay`, `rtc_mode` and `n_action_steps`:
+        real-time chunking, see `sample`.
         """
         out = self.sample(batch, sampler, steps, return_logprob, generator, noise, meanflow_velocity,
-                          prev_chunk=prev_chunk, delay=delay)
+                          prev_chunk=prev_chunk, delay=delay, rtc_mode=rtc_mode, n_action_steps=n_action_steps)
         return out if out.log_prob is not None else out.actions
 
     @property
@@ -370,10 +374,50 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         _finite(prev_chunk, "prev_chunk")
         return int(delay)
 
+    def resolve_rtc_mode(self, rtc_mode: Optional[str], delay: int = 0, sampler: Optional[str] = None) -> str:
+        """The real-time chunking mode a chunk with a previous one uses: `rtc_mode` ("trained" |
+        "guided"), or for None "trained" where the checkpoint was trained for it (`rtc_max_delay` ≥
+        `delay`, a sampler that feeds a prefix: "ode", or "euler" for flow matching) and "guided"
+        elsewhere. An explicit "trained" the checkpoint cannot serve is one ValueError line."""
+        if rtc_mode not in RTC_MODES:
+            raise ValueError(f"rtc_mode: expected one of {list(RTC_MODES)} (None: trained when the checkpoint "
+                             f"has it, else guided), got {rtc_mode!r}")
+        cfg = self.config
+        chosen = self.resolve_sampler(sampler)
+        feeds = chosen == "ode" or (chosen == "euler" and cfg.decoder_type == "flow_matching")
+        if rtc_mode == "guided" or (rtc_mode is None and not (cfg.rtc_max_delay >= delay and cfg.rtc_max_delay
+                                                               and feeds)):
+            return "guided"
+        if not cfg.rtc_max_delay:
+            raise ValueError("rtc_mode: 'trained' needs a checkpoint trained with real-time chunking "
+                             "(train --rtc-max-delay N); this one has rtc_max_delay=0: use rtc_mode='guided'")
+        if delay > cfg.rtc_max_delay:
+            raise ValueError(f"delay: {delay} exceeds rtc_max_delay={cfg.rtc_max_delay}, the longest prefix this "
+                             f"checkpoint was trained to continue; use rtc_mode='guided' or a delay <= "
+                             f"{cfg.rtc_max_delay}")
+        if not feeds:
+            raise ValueError(f"rtc_mode: 'trained' feeds the prefix to the ODE sampler ('ode'"
+                             f"{', or euler' if cfg.decoder_type == 'flow_matching' else ''}); got sampler="
+                             f"{chosen!r}: use rtc_mode='guided' with it")
+        return "trained"
+
+    def _executed_rows(self, n_action_steps: Optional[int], overlap: int) -> int:
+        """The actions a new chunk executes after its delay: `n_action_steps`, else H − L (prev_chunk's
+        length L = H − s implies s)."""
+        h = self.config.action_chunk_size
+        if n_action_steps is None:
+            return h - overlap
+        if isinstance(n_action_steps, bool) or not isinstance(n_action_steps, numbers.Integral) \
+                or not 1 <= n_action_steps <= h:
+            raise ValueError(f"n_action_steps: expected the actions executed per chunk, an integer in 1..{h}, "
+                             f"got {n_action_steps!r}")
+        return int(n_action_steps)
+
     def sample(self, batch: Mapping[str, Any], sampler: Optional[str] = None, steps: Optional[int] = None,
                return_logprob: Optional[bool] = None, generator: Generators = None,
                noise: Optional[Tensor] = None, meanflow_velocity: Optional[str] = None,
-               prev_chunk: Optional[Tensor] = None, delay: int = 0) -> PolicyOutput:
+               prev_chunk: Optional[Tensor] = None, delay: int = 0, rtc_mode: Optional[str] = None,
+               n_action_steps: Optional[int] = None) -> PolicyOutput:
         """Like `predict_action_chunk` but always a `PolicyOutput`, and differentiable.
 
         `meanflow_velocity` ("boundary" | "identity"; None: `config.meanflow_sde_velocity`)
@@ -388,16 +432,25 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         without it the chain is data and the gradient reaches the network through the means
         (score-function / PPO form, that of `chain_log_prob`); see `flows.sample_sde`.
 
-        Real-time chunking (`flows/rtc.py`, flow_matching and mean_flow with any sampler):
-        `prev_chunk` [B, L, D] (env units) is what the previous chunk plans for this chunk's steps
-        0..L−1 (its actions from s on, after s executed ones: L = H − s), and `delay` d ≤ L is how
-        many control steps inference takes. The returned chunk's first d actions are prev_chunk's,
-        exactly; the rest of the overlap is guided towards prev_chunk with weights that decay
-        (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are free (with the
-        `rtc_horizon` "execution", MeanFlow's default, steps ≥ d + n_action_steps too). Flow matching's
-        guidance costs each step its vector–Jacobian product; MeanFlow's needs none (a 1-step chunk
-        stays one network call, K steps take 2K − 1). DDPM refuses `prev_chunk`, and so do log-probs (the guided chain has no
-        `chain_log_prob` to re-score it).
+        Real-time chunking (flow_matching and mean_flow): `prev_chunk` [B, L, D] (env units) is what
+        the previous chunk plans for this chunk's steps 0..L−1 (its actions from s on, after s executed
+        ones: L = H − s), and `delay` d ≤ L is how many control steps inference takes. The returned
+        chunk's first d actions are prev_chunk's, exactly. `rtc_mode` (`resolve_rtc_mode`):
+
+        - "trained" (`flows/rtc_trained.py`; checkpoints trained with `rtc_max_delay` ≥ d, samplers
+          "ode", and "euler" for flow matching): the d actions are fed in clean at t = 1 on every step,
+          the same network calls as a plain chunk; the rest follows the network given them.
+        - "guided" (`flows/rtc.py`, any sampler): the rest of the overlap is guided towards prev_chunk
+          with weights that decay (`rtc_schedule`) under the clip `rtc_guidance_weight`; steps ≥ L are
+          free (with the `rtc_horizon` "execution", MeanFlow's default, steps ≥ d + s too, s =
+          `n_action_steps`, None: H − L, the executed rows prev_chunk's length implies). Flow
+          matching's guidance costs each step its vector–Jacobian product; MeanFlow's needs none (a
+          1-step chunk stays one network call, K steps take 2K − 1), and at K = 1 it is the output
+          blend (1 − W)·x̂ + W·prev of the new plan and the previous one (warned once).
+        - None: "trained" when the checkpoint has it for this delay and sampler, else "guided".
+
+        DDPM refuses `prev_chunk`, and so do log-probs (an RTC chain has no `chain_log_prob` to
+        re-score it).
         """
         cfg = self.config
         chosen = self.resolve_sampler(sampler)
@@ -409,6 +462,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         if want_lp and chosen != "sde":
             raise ValueError(f"return_logprob: log-probs come from the SDE sampler; got sampler={chosen!r} "
                              f"(deterministic samplers have no density)")
+        if rtc_mode not in RTC_MODES:
+            self.resolve_rtc_mode(rtc_mode)                                          # one line
         bound = self.bind(batch, meanflow_velocity)
         delay = self._check_prev_chunk(batch, prev_chunk, delay)
         if prev_chunk is not None and want_lp:
@@ -427,8 +482,21 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if cfg.action_squash:       # back through the squash: guidance acts on the chain's own units
                 prev = torch.atanh(prev.clamp(-1 + 1e-6, 1 - 1e-6))
             prev = self.normalizers["actions"].normalize(prev)
+            mode = self.resolve_rtc_mode(rtc_mode, delay, chosen)
+            if mode == "trained":
+                if delay == 0:                    # nothing committed: the plain chunk
+                    x = sample_ode(velocity, noise, steps) if chosen == "euler" or cfg.decoder_type == "flow_matching" \
+                        else sample_meanflow(bound.avg_velocity, noise, steps)
+                elif chosen == "euler" or cfg.decoder_type == "flow_matching":
+                    x = sample_ode_prefix(velocity, noise, prev[:, :delay], steps)
+                else:
+                    x = sample_meanflow_prefix(bound.avg_velocity, noise, prev[:, :delay], steps)
+                out.actions = self._env_actions(x)
+                out.actions[:, :delay] = prev_chunk[:, :delay].to(out.actions)      # exact, not round-tripped
+                return out
             if self.rtc_horizon == "execution":
-                prev = prev[:, : delay + cfg.n_action_steps]                                   # [B, min(L, d + s), D]
+                executed = self._executed_rows(n_action_steps, prev.shape[1])
+                prev = prev[:, : delay + executed]                                   # [B, min(L, d + s), D]
             rtc = {"max_guidance_weight": cfg.rtc_guidance_weight, "schedule": cfg.rtc_schedule}
             if chosen == "sde":
                 res = sample_sde_rtc(velocity, noise, prev, delay, steps, self.sigma, generator=generator,
@@ -437,6 +505,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             elif chosen == "euler" or cfg.decoder_type == "flow_matching":
                 x = sample_ode_rtc(velocity, noise, prev, delay, steps, **rtc)
             else:
+                if steps == 1 and not self._warned_blend:
+                    warnings.warn("rtc_mode='guided' with a 1-step MeanFlow chunk returns the output blend "
+                                  "(1 − W)·x̂ + W·prev_chunk of the new plan and the previous one: rows past the "
+                                  "guided window ignore the committed prefix, and on multimodal chunks a blend "
+                                  "can fall between the modes; a checkpoint trained with --rtc-max-delay "
+                                  "(rtc_mode='trained') conditions on the prefix instead", UserWarning, stacklevel=3)
+                    self._warned_blend = True
                 x = sample_meanflow_rtc(bound.avg_velocity, noise, prev, delay, steps, **rtc)
             out.actions = self._env_actions(x)
             out.actions[:, :delay] = prev_chunk[:, :delay].to(out.actions)      # exact, not round-tripped

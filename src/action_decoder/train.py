@@ -110,6 +110,8 @@ class TrainConfig:
     """MeanFlow: target of the r != t rows, the MeanFlow identity or interval consistency (split)."""
     flow_prediction: Optional[Literal["velocity", "sample"]] = None
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
+    rtc_max_delay: int = 0
+    """Training-time real-time chunking: the largest committed prefix, in actions, the policy learns to continue (0: off)."""
     checkpoint_every: int = 500
     """Steps between resumable checkpoints."""
     log_every: int = 25
@@ -339,7 +341,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
-        flow_prediction=flow_prediction(cfg),
+        flow_prediction=flow_prediction(cfg), rtc_max_delay=cfg.rtc_max_delay,
         extra={"tasks": tasks, "train": asdict(cfg),
                **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
 
@@ -480,6 +482,12 @@ def _check(cfg: TrainConfig) -> None:
                  "image_size"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
+    if cfg.rtc_max_delay and cfg.decoder == "DDPM":
+        raise ValueError(f"--rtc-max-delay: training-time real-time chunking needs --decoder flow_matching or "
+                         f"mean_flow, got --decoder DDPM with --rtc-max-delay {cfg.rtc_max_delay}")
+    if not 0 <= cfg.rtc_max_delay < cfg.horizon:
+        raise ValueError(f"--rtc-max-delay: expected an integer number of actions in [0, {cfg.horizon - 1}] "
+                         f"(below --horizon {cfg.horizon}), got {cfg.rtc_max_delay}")
     if cfg.eval_episodes < 0 or cfg.inference_steps < 0:
         raise ValueError("--eval-episodes/--inference-steps: expected >= 0")
     if not 0 <= cfg.ema_decay < 1:

@@ -94,6 +94,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     rtc_guidance_weight: float = 5.0
     rtc_schedule: str = "exp"
     rtc_horizon: str = "auto"
+    rtc_max_delay: int = 0
     default_ctrl_freq: float = 10.0
 
     normalization_mapping: dict[str, NormalizationMode] = field(

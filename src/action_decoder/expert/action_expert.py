@@ -90,20 +90,34 @@ class ActionExpert(nn.Module):
 
     def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
                 ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:
-        """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow);
+        """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow), or per
+        action token [B, H] (training-time real-time chunking: the committed rows at t = r = 1);
         state [B, state_input_dim] (normalised, with the layout's features); ctrl_freq [B] Hz
         (None: config.default_ctrl_freq).
+
+        Per-token times: the t and r tokens carry the earliest time of each sample (the rows
+        still being generated), and each action token whose own time differs from it gets the
+        difference of the two embeddings added; with all times of a sample equal this is the
+        per-sample path exactly.
         Returns [B, H, action_dim] in x's dtype."""
         b, horizon, _ = self._check(x, state, prefix)
         dtype = self.head.weight.dtype
-        t, r = self._per_sample(t, b, x.device, "t"), self._per_sample(r, b, x.device, "r")
+        t = self._time(t, b, horizon, x.device, "t")
+        r = self._time(r, b, horizon, x.device, "r")
         if ctrl_freq is None:
             ctrl_freq = torch.full((b,), self.config.default_ctrl_freq, device=x.device)
         ctrl_freq = self._per_sample(ctrl_freq, b, x.device, "ctrl_freq")
+        actions = self.action_in(x.to(dtype))                                     # [B, H, hidden]
+        if t.dim() == 1 and r.dim() == 1:
+            t_tok, r_tok = self.t_embed(t), self.r_embed(r)                       # [B, hidden] each
+        else:
+            t_tok, t_off = self._token_times(self.t_embed, t, b, horizon)
+            r_tok, r_off = self._token_times(self.r_embed, r, b, horizon)
+            actions = actions + (t_off + r_off)
         tokens = torch.cat([
-            torch.stack([self.t_embed(t), self.r_embed(r), self.freq_embed(ctrl_freq),
+            torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq),
                          self.state_in(state.to(dtype))], dim=1),                 # [B, 4, hidden]
-            self.action_in(x.to(dtype)),                                          # [B, H, hidden]
+            actions,                                                              # [B, H, hidden]
         ], dim=1)                                                                 # [B, N, hidden]
         n = tokens.shape[1]
         cos, sin = rotary_cos_sin(n, self.head_dim, self.config.rope_theta, x.device, dtype)
@@ -131,6 +145,31 @@ class ActionExpert(nn.Module):
             if len(prefix.keys) != len(self.blocks):
                 raise ValueError(f"prefix: expected {len(self.blocks)} layers, got {len(prefix.keys)}")
         return x.shape[0], x.shape[1], x.shape[2]
+
+    def _time(self, v: Tensor | float, b: int, horizon: int, device: torch.device, name: str) -> Tensor:
+        """A time per sample [B] (a scalar is broadcast), or per action token [B, H] as given."""
+        if isinstance(v, Tensor) and v.dim() == 2:
+            if tuple(v.shape) != (b, horizon):
+                raise ValueError(f"{name}: expected shape [{b}] or [{b}, {horizon}] (per action token), "
+                                 f"got {list(v.shape)}")
+            return v
+        try:
+            return self._per_sample(v, b, device, name)
+        except ValueError:
+            raise ValueError(f"{name}: expected shape [{b}] or [{b}, {horizon}] (per action token) or a scalar, "
+                             f"got {list(v.shape)}") from None
+
+    @staticmethod
+    def _token_times(embed: ScalarEmbedding, v: Tensor, b: int, horizon: int) -> tuple[Tensor, Tensor]:
+        """(token [B, hidden], offsets [B, H, hidden]) of times per token `v` ([B] or [B, H]): the token
+        embeds each sample's earliest time; an action token whose time differs from it is offset by
+        embed(own) − embed(earliest), one where its time equals it by exactly 0."""
+        full = v[:, None].expand(b, horizon) if v.dim() == 1 else v                  # [B, H]
+        first = full.amin(1)                                                        # [B]
+        emb = embed(torch.cat([first, full.reshape(-1)]))                           # [B + B·H, hidden]
+        tok = emb[:b]
+        off = (emb[b:].view(b, horizon, -1) - tok[:, None]) * (full != first[:, None])[..., None]
+        return tok, off
 
     @staticmethod
     def _per_sample(v: Tensor | float, b: int, device: torch.device, name: str) -> Tensor:

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from ..config import MEANFLOW_DUDT
 from .paths import AvgVelocity, Velocity, check_chunk, checked_call, interpolate
+from .rtc_trained import CLEAN, KEEP, check_max_delay, prefix_mask, sample_delays, with_clean_prefix
 
 
 def _map_tensors(obj: Any, fn) -> Any:
@@ -39,16 +40,44 @@ def _bcast(t: Tensor, like: Tensor) -> Tensor:
     return t.reshape(-1, *([1] * (like.dim() - 1)))
 
 
+def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Generator],
+                 cond: Optional[Mapping[str, Any]]):
+    """Training-time RTC (`flows.rtc_trained`): (fn, cond, live [B, H] or None). With max_delay > 0,
+    row b's first d_b ~ U{0..max_delay} actions are given clean at t = r = 1 (`with_clean_prefix`,
+    its mask and clean actions travel in `cond` so that every row split slices them too) and `live`
+    marks the other rows, the ones the loss covers."""
+    check_max_delay(max_delay, a.shape[1])
+    if not max_delay:
+        return fn, cond, None
+    keep = prefix_mask(sample_delays(a.shape[0], max_delay, generator, a.device), a.shape[1])   # [B, H]
+    return with_clean_prefix(fn), {**(cond or {}), KEEP: keep, CLEAN: a}, ~keep
+
+
+def _masked_mean(sq: Tensor, live: Optional[Tensor]) -> Tensor:
+    """Per-row mean of sq [B, H, D] over H×D, or over the live rows' entries ([B, H] mask)."""
+    if live is None:
+        return sq.mean((1, 2))
+    w = live[..., None].to(sq.dtype)
+    return (sq * w).sum((1, 2)) / (w.sum((1, 2)) * sq.shape[2])
+
+
 def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[torch.Generator] = None,
-                       cond: Optional[Mapping[str, Any]] = None) -> Tensor:
-    """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries."""
+                       cond: Optional[Mapping[str, Any]] = None, rtc_max_delay: int = 0) -> Tensor:
+    """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries.
+
+    `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
+    d ~ U{0..rtc_max_delay} actions are given clean at t = 1 (the velocity then takes times per
+    token [B, H]); the loss is the mean over the other rows' entries, per chunk, then over chunks."""
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions
     t = torch.rand(a.shape[0], generator=generator, device=a.device, dtype=a.dtype)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z = interpolate(e, a, t)
-    v = checked_call(lambda x, tt: velocity(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
-    return (v - (a - e)).square().mean()
+    fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond)
+    v = checked_call(lambda x, tt: fn(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
+    if live is None:
+        return (v - (a - e)).square().mean()
+    return _masked_mean((v - (a - e)).square(), live).mean()
 
 
 # Central-difference step along (v, 1, 0) in float32. The time embedding's shortest period
@@ -165,7 +194,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
                   one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
-                  fd_one_call: Optional[bool] = None, target: str = "identity") -> Tensor:
+                  fd_one_call: Optional[bool] = None, target: str = "identity", rtc_max_delay: int = 0) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -202,6 +231,11 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     λ ~ U(0, 1), u₁ = sg(u_θ(z, t, s)), z_s = z + (s − t)·u₁, u₂ = sg(u_θ(z_s, s, r)), the target is
     λ·u₁ + (1 − λ)·u₂ (the exact average velocity is additive over sub-intervals); two no-grad
     calls over the n rows, no du/dt.
+
+    `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
+    d ~ U{0..rtc_max_delay} actions are given clean at t = r = 1 in every call (held fixed along
+    the du/dt tangent and in the split's intermediate point), and each row's error is the mean over
+    its other rows' entries.
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
@@ -222,6 +256,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                                     time_dist, one_step_share)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e                                   # [B, H, D] each
+    avg_velocity, cond, live = clean_prefix(avg_velocity, a, rtc_max_delay, generator, cond)
     if tangent == "boundary" and n > 0:
         c = slice_cond(cond, slice(0, n))
         with torch.no_grad():
@@ -244,7 +279,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                 u1 = call(z[head], t[head], s)                               # [n, H, D] over [t, s]
                 u2 = call(z[head] + _bcast(s - t[head], v) * u1, s, r[head])  # over [s, r]
             goal = torch.cat([_bcast(lam, v) * u1 + _bcast(1 - lam, v) * u2, v[n:]])
-        return _adaptive_mean(u - goal, adaptive_p, adaptive_c)
+        return _adaptive_mean(u - goal, adaptive_p, adaptive_c, live)
     deltas = []
     autocast = torch.is_autocast_enabled(a.device.type)
     if fd_one_call and autocast:
@@ -280,10 +315,11 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
         u = checked_call(lambda x, tt: avg_velocity(x, tt, tt, **c), z[sub], t[sub], dtype=a.dtype,
                          name="avg_velocity")
         deltas.append(u - v[sub])
-    return _adaptive_mean(torch.cat(deltas), adaptive_p, adaptive_c)
+    return _adaptive_mean(torch.cat(deltas), adaptive_p, adaptive_c, live)
 
 
-def _adaptive_mean(delta: Tensor, p: float, c: float) -> Tensor:
-    """mean(w·error) with error = mean(Δ²) over H×D per row and w = sg(1 / (error + c)^p)."""
-    error = delta.square().mean((1, 2))                                    # [B]
+def _adaptive_mean(delta: Tensor, p: float, c: float, live: Optional[Tensor] = None) -> Tensor:
+    """mean(w·error) with error = mean(Δ²) over H×D per row (over the `live` rows' entries, [B, H])
+    and w = sg(1 / (error + c)^p)."""
+    error = _masked_mean(delta.square(), live)                             # [B]
     return ((error.detach() + c).pow(-p) * error).mean()

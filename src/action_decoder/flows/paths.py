@@ -14,8 +14,13 @@ from typing import Callable, Optional, Sequence, Union
 import torch
 from torch import Tensor
 
-Velocity = Callable[[Tensor, Tensor], Tensor]            # v(x [B,H,D], t [B]) -> [B,H,D]
-AvgVelocity = Callable[[Tensor, Tensor, Tensor], Tensor]  # u(x, t [B], r [B]) -> [B,H,D]
+Velocity = Callable[[Tensor, Tensor], Tensor]            # v(x [B,H,D], t [B] or [B,H]) -> [B,H,D]
+AvgVelocity = Callable[[Tensor, Tensor, Tensor], Tensor]  # u(x, t, r: [B] or [B,H]) -> [B,H,D]
+
+
+def time_like(t: Tensor, x: Tensor) -> Tensor:
+    """A time per sample [B] or per token [B, H] shaped to broadcast over x [B, H, D]."""
+    return t.reshape(*t.shape, *([1] * (x.dim() - t.dim()))) if t.dim() else t.reshape(*([1] * x.dim()))
 
 
 def time_grid(steps: int, device=None, dtype: torch.dtype = torch.float32) -> Tensor:
@@ -25,14 +30,14 @@ def time_grid(steps: int, device=None, dtype: torch.dtype = torch.float32) -> Te
 
 
 def interpolate(noise: Tensor, actions: Tensor, t: Tensor) -> Tensor:
-    """z_t = (1 − t)·e + t·a with t `[B]` broadcast over the chunk."""
-    t = t.reshape(-1, *([1] * (actions.dim() - 1)))
+    """z_t = (1 − t)·e + t·a with t `[B]` (or per token, `[B, H]`) broadcast over the chunk."""
+    t = time_like(t, actions)
     return (1 - t) * noise + t * actions
 
 
 def score_from_velocity(x: Tensor, v: Tensor, t: Tensor, clip_t: float = 0.0) -> Tensor:
     """∇log p_t(x) = (t·v − x) / (1 − t), with 1 − t floored at `clip_t`."""
-    t = t.reshape(-1, *([1] * (x.dim() - 1)))
+    t = time_like(t, x)
     return (t * v - x) / (1 - t).clamp_min(clip_t)
 
 
@@ -41,7 +46,7 @@ def velocity_from_sample(x: Tensor, t: Tensor, sample: Tensor, clip: float = 0.0
     t = 1, with 1 − t floored at `clip`. A head that predicts x̂ instead of the velocity need not
     reproduce the noise in its output: with x̂ exact, one Euler step already lands on it."""
     dtype = compute_dtype(x)
-    t = t.to(dtype).reshape(-1, *([1] * (x.dim() - 1)))
+    t = time_like(t.to(dtype), x)
     return (sample.to(dtype) - x.to(dtype)) / (1 - t).clamp_min(clip)
 
 

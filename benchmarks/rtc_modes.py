@@ -1,0 +1,419 @@
+"""Real-time chunking modes: naive switching, guidance (`rtc_mode="guided"`) and training-time RTC
+(`rtc_mode="trained"`), on multimodal chunks and on Meta-World. Run through `python -m benchmarks rtc`.
+
+Every new chunk is planned while the robot executes the old chunk's next d actions (d = delay) and
+takes over after them; a new plan starts every s = 4 of H = 16 actions. Arms:
+naive: the new chunk, sampled without the old one, takes over after the d old actions;
+guided: `flows/rtc.py` on weights trained without RTC (FM: ΠGDM guidance over the overlap; MeanFlow:
+  the J = I pull over the executed rows, an output blend at K = 1);
+trained: the d committed actions fed in clean at t = 1 (`flows/rtc_trained.py`) on weights trained with
+  rtc_max_delay = 4 (delays uniform on 0..4).
+naive and guided use the weights trained without RTC; trained uses the RTC-trained ones.
+
+(a) synthetic two-route chunks (`benchmarks.multimodal.routes`): for each state the committed plan is one
+    route A (drawn 50/50); prev_chunk is route A over the new chunk's steps, and the executed rows
+    d..d+s−1 of the new chunk keep the route when they are nearer A than B and within a quarter of the
+    A–B distance of A (RMS over those rows). Jerk: mean |c_k+1 − 2c_k + c_k−1|² over the two stencils
+    around the switch, c being the executed sequence (route A before the switch, the new chunk after).
+(b) obstacle routes, closed loop (`envs.obstacle_routes`): at each re-plan before the point passes the
+    obstacle, the side (above/below) of the positions the old chunk planned for the new chunk's executed
+    rows against the side of the positions actually planned (the d old actions, then the new chunk's);
+    success, collisions, and the boundary jerk of the executed actions.
+Latency: batch 1, median CPU time over interleaved plain and RTC calls of the same weights.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+S, H = 4, 16                                   # actions executed per chunk, chunk length
+DELAYS = (0, 1, 2, 4)
+MAX_DELAY = 4                                  # rtc_max_delay of the RTC-trained weights
+SETTINGS = (("flow_matching", 10), ("mean_flow", 1), ("mean_flow", 2))
+LABEL = {("flow_matching", 10): "FM K=10", ("mean_flow", 1): "MF K=1", ("mean_flow", 2): "MF K=2"}
+ARMS = ("naive", "guided", "trained")
+
+
+# ----------------------------------------------------------------------------------------- shared
+def chunk(policy, state: torch.Tensor, steps: int, arm: str, prev, delay: int, generator) -> torch.Tensor:
+    """One chunk per state [B, H, D] for an arm; prev [B, L, D] or None (an episode's first plan)."""
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # the 1-step MeanFlow blend warning: the arm is measured
+        if arm == "naive" or prev is None:
+            return policy.sample({"state": state}, steps=steps, generator=generator).actions
+        return policy.sample({"state": state}, steps=steps, generator=generator, prev_chunk=prev, delay=delay,
+                             rtc_mode=arm).actions
+
+
+def latency_ms(policy, steps: int, arm: str, reps: int) -> tuple[float, float]:
+    """(plain, arm) median ms of one chunk for one state, interleaved, the arm at the largest delay: the
+    process's CPU time (one torch thread), which a shared machine's other processes do not inflate."""
+    cfg = policy.config
+    state = torch.zeros(1, cfg.state_dim)
+    prev = torch.zeros(1, H - S, cfg.action_dim)
+    times = {"plain": [], "arm": []}
+    for rep in range(reps + 3):
+        for name, a in (("plain", "naive"), ("arm", arm)):
+            t0 = time.process_time()
+            chunk(policy, state, steps, a, prev, MAX_DELAY, torch.Generator().manual_seed(rep))
+            if rep >= 3:
+                times[name].append(time.process_time() - t0)
+    return 1000 * statistics.median(times["plain"]), 1000 * statistics.median(times["arm"])
+
+
+def retime(args) -> None:
+    """Re-measure the latency of every row of --multimodal-json and --modes-json at its largest delay."""
+    from action_decoder import ActionDecoderPolicy
+
+    for path in (Path(args.multimodal_json), Path(args.modes_json)):
+        if not path.is_file():
+            continue
+        rows = json.loads(path.read_text())
+        for r in rows:
+            if r.get("latency_ms") is None:
+                continue
+            if "checkpoint" in r:
+                ckpt = r["checkpoint"]
+            else:
+                suffix = f"-rtc{MAX_DELAY}" if r["arm"] == "trained" else ""
+                ckpt = Path(args.runs) / "multimodal" / f"{r['task']}-{r['decoder']}{suffix}-seed{r['seed']}"
+            policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
+            plain, armed = latency_ms(policy, r["steps"], r["arm"], args.latency_reps)
+            r.update(latency_plain_ms=plain, latency_ms=armed if r["arm"] != "naive" else plain,
+                     latency_timed=f"{time.strftime('%Y-%m-%d')}, CPU time")
+            print(f"{r['task']} {LABEL[(r['decoder'], r['steps'])]} {r['arm']}: {plain:.2f} -> {armed:.2f} ms", flush=True)
+        path.write_text(json.dumps(rows, indent=1))
+
+
+def switch_jerk(seq: np.ndarray, switch: int) -> float:
+    """Mean squared second difference of seq [T, D] over the stencils centred at switch − 1 and switch."""
+    centres = [c for c in (switch - 1, switch) if 1 <= c <= len(seq) - 2]
+    return float(np.mean([np.square(seq[c + 1] - 2 * seq[c] + seq[c - 1]).sum() for c in centres]))
+
+
+def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, draw, state_dim: int,
+                     action_dim: int) -> dict:
+    """{"plain": policy, "rtc": policy, "train_cpu_s": {...}}: trained once (benchmarks.multimodal.train),
+    kept under runs/<task>-<decoder>[-rtc4]."""
+    from action_decoder import ActionDecoderPolicy
+    from benchmarks.multimodal import Budget, train
+
+    out = {"train_cpu_s": {}}
+    for key, max_delay in (("plain", 0), ("rtc", MAX_DELAY)):
+        path = runs / f"{task}-{decoder}{f'-rtc{max_delay}' if max_delay else ''}-seed{seed}"
+        if not (path / "model.safetensors").is_file():
+            b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay})
+            policy, cpu_s = train(decoder, draw, state_dim, action_dim, b, seed)
+            policy.save_pretrained(path)
+            (path / "train_cpu_s.json").write_text(json.dumps(cpu_s))
+        out[key] = ActionDecoderPolicy.from_pretrained(path).eval()
+        out["train_cpu_s"][key] = json.loads((path / "train_cpu_s.json").read_text())
+    return out
+
+
+def arm_policy(pols: dict, arm: str):
+    return pols["rtc"] if arm == "trained" else pols["plain"]
+
+
+# ----------------------------------------------------------------------------------------- synthetic
+def route_rows(state: torch.Tensor, sign: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Route rows [B, len(rows), 4] of `benchmarks.multimodal.routes` at (possibly negative) rows j, h = j/(H−1),
+    sign ±1 per state: the route continued before the chunk's first row for the jerk stencils."""
+    h = rows.to(state.dtype) / (H - 1)
+    base = 0.5 * state[:, None, :] * h[None, :, None]
+    bend = torch.sin(math.pi * h)[:, None] * torch.tensor([1.0, -0.6, 0.8, 0.4])
+    return base + sign[:, None, None] * bend
+
+
+def run_synthetic(pols_by_decoder: dict, states: int, samples: int, seed: int) -> list[dict]:
+    from benchmarks.multimodal import mode_metrics, routes, separation
+
+    gen = torch.Generator().manual_seed(4242 + seed)
+    state = torch.randn(states, 4, generator=gen).repeat_interleave(samples, 0)             # [N, 4]
+    n = state.shape[0]
+    sign = torch.where(torch.rand(n, generator=gen) < 0.5, 1.0, -1.0)                     # committed route A
+    committed = route_rows(state, sign, torch.arange(-2, H))                              # [N, H + 2, 4]
+    other = route_rows(state, -sign, torch.arange(H))
+    prev = committed[:, 2: 2 + H - S]                                                      # [N, L, 4]
+    rows = []
+    for (decoder, steps) in SETTINGS:
+        pols = pols_by_decoder.get(decoder)
+        if pols is None:
+            continue
+        for d in DELAYS:
+            for arm in ARMS:
+                gens = [torch.Generator().manual_seed(seed * 100_000 + i) for i in range(n)]
+                new = chunk(arm_policy(pols, arm), state, steps, arm, prev, d, gens)      # [N, H, 4]
+                ex = slice(d, d + S)
+                dist_a = (new[:, ex] - committed[:, 2:][:, ex]).square().mean((1, 2)).sqrt()
+                dist_b = (new[:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
+                gap = (committed[:, 2:][:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
+                keep = (dist_a < dist_b) & (dist_a < 0.25 * gap)
+                off = (dist_a >= 0.25 * gap) & (dist_b >= 0.25 * gap)
+                seq = torch.cat([committed[:, : 2 + d], new[:, d:]], 1).numpy()           # executed: A, then new
+                jerk = float(np.mean([switch_jerk(s, 2 + d) for s in seq]))
+                row = {"task": "synthetic", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+                       "samples": n, "route_consistency": keep.float().mean().item(),
+                       "off_route": off.float().mean().item(), "switch_jerk": jerk}
+                if d == 0 and arm != "guided":
+                    modes = routes(state[::samples])                                       # [states, 2, H, 4]
+                    free = chunk(arm_policy(pols, arm), state, steps, "naive", None, 0, gens)
+                    row["mode_metrics"] = mode_metrics(free.reshape(states, samples, H, 4), modes,
+                                                       0.1 * separation())
+                rows.append(row)
+                print(json.dumps({k: v for k, v in row.items() if k != "mode_metrics"}), flush=True)
+    return rows
+
+
+# ----------------------------------------------------------------------------------------- obstacle
+def obstacle_episode(policy, steps: int, arm: str, d: int, layout: int, noise_seed: int) -> dict:
+    """One closed-loop episode with inference delay d; re-plans every S actions."""
+    from action_decoder.envs.obstacle_routes import SPEED, ObstacleRoutesEnv
+
+    env = ObstacleRoutesEnv()
+    obs, _ = env.reset(seed=layout)
+    plan_i = 0
+
+    def plan(prev):
+        nonlocal plan_i
+        g = torch.Generator().manual_seed(noise_seed * 1000 + plan_i)
+        plan_i += 1
+        p = None if prev is None else torch.from_numpy(prev)[None]
+        return np.clip(chunk(policy, torch.from_numpy(obs)[None], steps, arm, p, d, g)[0].numpy(), -1, 1)
+
+    current = plan(None)
+    queue, executed, switches, checks = list(current[: S + d]), [], [], []
+    info, done, truncated = {"success": False, "collided": False}, False, False
+    while not (done or truncated):
+        if len(queue) == d:
+            new = plan(current[S:].astype(np.float32))
+            pos, centre = obs[:2].astype(np.float64), obs[4:6].astype(np.float64)
+            if pos[0] < centre[0]:                        # the route is still open
+                old_path = pos + SPEED * np.cumsum(current[S: S + d + S], 0)             # old plan, new steps 0..d+S−1
+                new_path = pos + SPEED * np.cumsum(np.concatenate([np.array(queue).reshape(-1, 2),
+                                                                   new[d: d + S]]), 0)
+                side = lambda path: np.sign(path[d: d + S, 1].mean() - centre[1])         # noqa: E731
+                checks.append(bool(side(old_path) == side(new_path)))
+            switches.append(len(executed) + d)
+            queue = queue + list(new[d: d + S])
+            current = new
+        a = queue.pop(0)
+        obs, _, done, truncated, info = env.step(a)
+        executed.append(a)
+    seq = np.asarray(executed)
+    jerks = [switch_jerk(seq, k) for k in switches if 1 <= k - 1 and k + 1 <= len(seq) - 1]
+    return {"success": bool(info["success"]), "collided": bool(info["collided"]), "checks": checks,
+            "jerks": jerks}
+
+
+def run_obstacle(pols_by_decoder: dict, episodes: int, seed: int) -> list[dict]:
+    rows = []
+    for (decoder, steps) in SETTINGS:
+        pols = pols_by_decoder.get(decoder)
+        if pols is None:
+            continue
+        for d in DELAYS:
+            for arm in ARMS:
+                res = [obstacle_episode(arm_policy(pols, arm), steps, arm, d, 1_000_000 + seed * 1000 + j, j)
+                       for j in range(episodes)]
+                checks = [c for r in res for c in r["checks"]]
+                jerks = [j for r in res for j in r["jerks"]]
+                row = {"task": "obstacle", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+                       "episodes": episodes, "success": sum(r["success"] for r in res) / episodes,
+                       "collided": sum(r["collided"] for r in res) / episodes,
+                       "replans_checked": len(checks),
+                       "route_consistency": sum(checks) / len(checks) if checks else float("nan"),
+                       "switch_jerk": float(np.mean(jerks)) if jerks else float("nan")}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    return rows
+
+
+def run_multimodal(args, command: str) -> None:
+    """Train (once) and measure (a) and (b) for --settings' decoders; rows to --multimodal-json."""
+    from action_decoder.envs.obstacle_routes import ACTION_DIM, OBS_DIM, expert_dataset
+    from benchmarks.multimodal import Budget, dataset_batch, synthetic_batch
+
+    budget = Budget(steps=args.mm_train_steps)
+    runs = Path(args.runs) / "multimodal"
+    decoders = sorted({d for d, _ in args.settings})
+    out = Path(args.multimodal_json)
+    for task in args.multimodal:
+        if task == "synthetic":
+            pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4)
+                    for dec in decoders}
+            new = run_synthetic(pols, args.mm_states, args.mm_samples, args.seed)
+        else:
+            states, chunks = expert_dataset(budget.demos, args.seed)
+            pols = {dec: trained_policies("obstacle", dec, budget, args.seed, runs, dataset_batch(states, chunks),
+                                          OBS_DIM, ACTION_DIM) for dec in decoders}
+            new = run_obstacle(pols, args.mm_episodes, args.seed)
+        for r in new:
+            p = pols[r["decoder"]]
+            plain, armed = latency_ms(arm_policy(p, r["arm"]), r["steps"], r["arm"], args.latency_reps) \
+                if r["delay"] == DELAYS[-1] else (None, None)
+            r.update(latency_plain_ms=plain, latency_ms=armed, seed=args.seed, train_cpu_s=p["train_cpu_s"],
+                     train_steps=budget.steps, command=command, date=time.strftime("%Y-%m-%d"),
+                     machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
+                             f"{torch.get_num_threads()} torch thread")
+        key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"])     # noqa: E731
+        rows = json.loads(out.read_text()) if out.is_file() else []                              # read now: runs may overlap
+        rows = [r for r in rows if key(r) not in {key(n) for n in new}] + new
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(rows, indent=1))
+
+
+# ----------------------------------------------------------------------------------------- the page
+def _pct(x) -> str:
+    return "–" if x is None or x != x else f"{100 * x:.0f} %"
+
+
+def multimodal_section(rows: list[dict]) -> list[str]:
+    if not rows:
+        return ["## Multimodal chunks: does the new chunk keep the committed route?", "",
+                "Not yet measured.", ""]
+    syn = {(r["decoder"], r["steps"], r["delay"], r["arm"]): r for r in rows if r["task"] == "synthetic"}
+    obs = {(r["decoder"], r["steps"], r["delay"], r["arm"]): r for r in rows if r["task"] == "obstacle"}
+    meta = sorted({(r["date"], r["machine"], r["command"]) for r in rows})
+    n_syn = sorted({r["samples"] for r in syn.values()})
+    n_obs = sorted({r["episodes"] for r in obs.values()})
+    lines = ["## Multimodal chunks: does the new chunk keep the committed route?", "",
+             *[f"Measured {d} ({m}) by `{c}`." for d, m, c in meta], "",
+             f"Synthetic: {'/'.join(map(str, n_syn))} re-plans per cell (states × samples), the committed route "
+             f"drawn 50/50. Obstacle routes: {'/'.join(map(str, n_obs))} closed-loop episodes per cell, "
+             f"re-planning every {S} actions; route consistency over the re-plans made before the point passes "
+             f"the obstacle (count in the JSON). Each policy trains {rows[0]['train_steps']} steps "
+             f"(benchmarks/multimodal.py's budget); naive and guided use the weights trained without RTC, trained "
+             f"the weights trained with rtc_max_delay = {MAX_DELAY}. Chunk ms: batch 1, the median CPU time of "
+             f"interleaved calls (one torch thread), the arm at d = {DELAYS[-1]} against a plain chunk of the same "
+             f"weights. –: not measured.", "",
+             "| setting | d | arm | synthetic: route kept | synthetic: off both routes | synthetic: switch jerk | "
+             "obstacle: route kept | obstacle: success | obstacle: switch jerk | chunk ms (plain → arm) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for setting in SETTINGS:
+        for d in DELAYS:
+            for arm in ARMS:
+                k = (*setting, d, arm)
+                s, o = syn.get(k), obs.get(k)
+                if s is None and o is None:
+                    continue
+                lat = next((x for x in (s, o) if x and x.get("latency_ms") is not None), None)
+                ms = "–" if lat is None else f"{lat['latency_plain_ms']:.1f} → {lat['latency_ms']:.1f} " \
+                                              f"({lat['latency_ms'] / lat['latency_plain_ms']:.2f}×)"
+                sj = "–" if not s else f"{s['switch_jerk']:.4f}"
+                oj = "–" if not o or o["switch_jerk"] != o["switch_jerk"] else f"{o['switch_jerk']:.4f}"
+                lines.append(f"| {LABEL[setting]} | {d} | {arm} | {_pct(s and s['route_consistency'])} | "
+                             f"{_pct(s and s['off_route'])} | {sj} | {_pct(o and o['route_consistency'])} | "
+                             f"{_pct(o and o['success'])} | {oj} | {ms} |")
+    mm = [r for r in rows if r.get("mode_metrics")]
+    if mm:
+        lines += ["", "Without a prefix (d = 0, no previous chunk): the weights trained with RTC against those "
+                  "trained without, synthetic task (benchmarks/multimodal.py's metrics).", "",
+                  "| setting | weights | on a mode | majority share | energy distance |", "|---|---|---|---|---|"]
+        for r in sorted(mm, key=lambda r: (r["decoder"], r["steps"], r["arm"])):
+            m = r["mode_metrics"]
+            lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {'RTC-trained' if r['arm'] == 'trained' else 'plain'} "
+                         f"| {_pct(m['on_mode'])} | {_pct(m['majority_share'])} | {m['energy']:.3f} |")
+    return lines + [""]
+
+
+# ----------------------------------------------------------------------------------------- Meta-World
+def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int) -> Path:
+    """`action-decoder train` defaults (plus --rtc-max-delay), once, under runs/<task>-<decoder>[-rtc<N>]."""
+    import subprocess
+    import sys
+
+    out = runs / f"{task.split('/')[-1]}-{decoder}{f'-rtc{max_delay}' if max_delay else ''}"
+    if not (out / "final" / "model.safetensors").is_file():
+        cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
+               "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
+        cmd += ["--rtc-max-delay", str(max_delay)] if max_delay else []
+        out.mkdir(parents=True, exist_ok=True)
+        with open(out.with_suffix(".log"), "a") as fh:
+            subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
+                           env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
+    return out / "final"
+
+
+def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> list[dict]:
+    """Each (delay, arm) of one task and setting: success, boundary jerk, latency; the same noise per
+    (episode, plan) in every arm."""
+    from action_decoder import ActionDecoderPolicy
+    from action_decoder.envs import evaluate
+    from action_decoder.evaluate import make_policy_fn
+
+    need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
+    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0) for k in sorted(need)}
+    pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
+    rows = []
+    for arm in args.arms:
+        policy = arm_policy(pols, arm)
+        plain_ms, arm_ms = latency_ms(policy, steps, arm, args.latency_reps)
+        for d in args.delays:
+            fn = make_policy_fn(policy, 1, None, steps, torch.Generator().manual_seed(args.seed),
+                                rtc_mode=None if arm == "naive" else arm)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = evaluate(fn, task, episodes=args.episodes, seed=args.seed, n_action_steps=S,
+                               num_envs=args.num_envs, delay=d, rtc=arm != "naive")
+            rows.append({"task": res["task"], "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+                         "episodes": args.episodes, "seed": args.seed, "successes": int(sum(res["successes"])),
+                         "success_rate": res["success_rate"], "boundary_jerk": res["boundary_jerk"],
+                         "boundaries": res["boundaries"], "episode_boundary_jerk": res["episode_boundary_jerk"],
+                         "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
+                         "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
+                         "date": time.strftime("%Y-%m-%d"),
+                         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
+                                    f"{torch.get_num_threads()} torch thread"})
+            print(f"[{res['task']}] {LABEL[(decoder, steps)]} d={d} {arm}: success {res['success_rate']:.2f}, "
+                  f"boundary jerk {res['boundary_jerk']:.4g}, chunk {rows[-1]['latency_ms']:.1f} ms", flush=True)
+    return rows
+
+
+def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
+    head = ["## Meta-World: naive, guided and trained", ""]
+    if not rows:
+        return head + ["Not yet measured.", ""]
+    meta = sorted({(r["date"], r["machine"], r["command"]) for r in rows})
+    measured = sorted({r["task"] for r in rows})
+    eps = sorted({r["episodes"] for r in rows})
+    lines = head + [*[f"Measured {d} ({m}) by `{c}`." for d, m, c in meta], "",
+                    f"Tasks measured: {', '.join(measured)}; not yet measured: "
+                    f"{', '.join(t for t in (x.split('/')[-1] + '-v3' for x in tasks) if t not in measured) or 'none'}. "
+                    f"{'/'.join(map(str, eps))} episodes per task and cell, evaluation seed(s) "
+                    f"{', '.join(map(str, sorted({r['seed'] for r in rows})))}, re-planning every {S} of {H} actions. "
+                    f"Success noise: ±{100 * (0.25 / min(eps)) ** 0.5:.1f} points (binomial at 50 % over "
+                    f"{min(eps)} episodes); two cells differ beyond noise above "
+                    f"{2 * 2 ** 0.5 * 100 * (0.25 / min(eps)) ** 0.5:.0f} points. Boundary jerk as in the table "
+                    f"below, ± its standard error over episodes. Chunk ms: batch 1, the median CPU time of interleaved "
+                    f"calls (one torch thread), the arm at d = {MAX_DELAY} against a plain chunk of the same weights. "
+                    f"–: not measured.", "",
+                    "| setting | d | arm | tasks | success | boundary jerk | chunk ms (plain → arm) |",
+                    "|---|---|---|---|---|---|---|"]
+    for setting in SETTINGS:
+        for d in DELAYS:
+            for arm in ARMS:
+                got = [r for r in rows if (r["decoder"], r["steps"]) == setting and r["delay"] == d and r["arm"] == arm]
+                if not got:
+                    lines.append(f"| {LABEL[setting]} | {d} | {arm} | – | – | – | – |")
+                    continue
+                succ = 100 * sum(r["successes"] for r in got) / sum(r["episodes"] for r in got)
+                nb = sum(r["boundaries"] for r in got)
+                jerk = sum(r["boundary_jerk"] * r["boundaries"] for r in got) / max(1, nb)
+                per = [j for r in got for j in r["episode_boundary_jerk"] if j is not None]
+                se = statistics.stdev(per) / len(per) ** 0.5 if len(per) > 1 else float("nan")
+                p_ms = statistics.mean(r["latency_plain_ms"] for r in got)
+                a_ms = statistics.mean(r["latency_ms"] for r in got)
+                lines.append(f"| {LABEL[setting]} | {d} | {arm} | {len(got)} | {succ:.1f} | {jerk:.4f} ± {se:.4f} | "
+                             f"{p_ms:.1f} → {a_ms:.1f} ({a_ms / p_ms:.2f}×) |")
+    return lines + [""]

@@ -1,0 +1,330 @@
+"""Training-time real-time chunking: per-token times, the prefix-masked losses, prefix-fed sampling,
+the policy's modes and the CLI (train --rtc-max-delay, eval --rtc-mode)."""
+
+import json
+
+import pytest
+import torch
+
+from action_decoder import ActionDecoderPolicy, DecoderConfig
+from action_decoder.config import CONFIG_FORMAT_VERSION
+from action_decoder.expert import ActionExpert
+from action_decoder.flows import (flow_matching_loss, meanflow_loss, sample_meanflow, sample_meanflow_prefix,
+                                  sample_ode, sample_ode_prefix)
+from action_decoder.flows.losses import sample_meanflow_times
+from action_decoder.flows.rtc_trained import prefix_mask, sample_delays
+
+H, D = 8, 3
+
+
+def tiny(decoder_type="flow_matching", **kw):
+    torch.manual_seed(0)
+    kw = {"num_inference_timesteps": 2, **kw}
+    cfg = DecoderConfig(decoder_type=decoder_type, state_dim=6, action_dim=D, action_chunk_size=H, hidden_size=32,
+                        num_hidden_layers=1, **kw)
+    stats = {"state": {"mean": torch.zeros(6), "std": torch.ones(6), "min": -torch.ones(6), "max": torch.ones(6)},
+             "actions": {"mean": torch.full((D,), 0.5), "std": torch.full((D,), 2.0), "min": -torch.ones(D),
+                         "max": torch.ones(D)}}
+    return ActionDecoderPolicy(cfg, stats).eval()
+
+
+# ---------------------------------------------------------------------------- per-token times
+def test_per_token_times_equal_the_per_sample_path_when_all_times_are_equal():
+    torch.manual_seed(0)
+    net = ActionExpert(DecoderConfig(decoder_type="mean_flow", state_dim=5, action_dim=D, action_chunk_size=H,
+                                     hidden_size=32, num_hidden_layers=2)).double()
+    x, state = torch.randn(4, H, D, dtype=torch.float64), torch.randn(4, 5, dtype=torch.float64)
+    t, r = torch.rand(4, dtype=torch.float64), torch.rand(4, dtype=torch.float64)
+    scalar = net(x, t, r, state)
+    tokens = net(x, t[:, None].expand(4, H), r[:, None].expand(4, H), state)
+    torch.testing.assert_close(tokens, scalar, rtol=0, atol=1e-12)
+    # A clean prefix (t = r = 1 on the first two rows) changes the output: the tokens see their own time.
+    keep = prefix_mask(torch.full((4,), 2), H)
+    t2, r2 = torch.where(keep, 1.0, t[:, None]), torch.where(keep, 1.0, r[:, None])
+    assert (net(x, t2, r2, state) - scalar).abs().max() > 1e-3
+    with pytest.raises(ValueError, match=r"t: expected shape \[4\] or \[4, 8\] \(per action token\)"):
+        net(x, torch.rand(4, H + 1), r, state)
+
+
+# ---------------------------------------------------------------------------- the losses
+def test_flow_matching_loss_scores_only_the_rows_after_the_clean_prefix():
+    """Oracle: the velocity returns 0 on the live rows and 1e6 on the prefix; the loss is then the
+    closed-form mean of |a − e|² over the live rows, from the same draws."""
+    a = torch.randn(64, H, D, dtype=torch.float64)
+    seen = []
+
+    def velocity(x, t):
+        keep = t == 1.0                                                     # [B, H] per-token times
+        seen.append(bool(torch.equal(x[keep], a[keep])))                   # prefix rows given clean
+        return torch.where(keep[..., None], torch.full_like(x, 1e6), torch.zeros_like(x))
+
+    loss = flow_matching_loss(velocity, a, torch.Generator().manual_seed(3), rtc_max_delay=3)
+    g = torch.Generator().manual_seed(3)
+    t = torch.rand(64, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    d = sample_delays(64, 3, g)
+    live = ~prefix_mask(d, H)
+    want = torch.stack([(a - e)[b][live[b]].square().mean() for b in range(64)]).mean()
+    torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
+    assert seen == [True] and set(d.tolist()) == {0, 1, 2, 3}
+    assert (t < 1).all()
+    # rtc_max_delay = 0 is the plain loss, with the same draws.
+    plain = flow_matching_loss(lambda x, t: torch.zeros_like(x), a, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(plain, (a - e).square().mean(), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("dudt", ["jvp", "finite_difference"])
+def test_meanflow_loss_holds_the_prefix_fixed_along_the_tangent(dudt):
+    """u(x, t, r) = x[:, 0] + t[:, 0] broadcast over the chunk: with row 0 in the prefix (x = a, t = 1
+    fixed) du/dt = 0 and every target is v; with no prefix du/dt = v₀ + 1. Closed form from the same draws."""
+    B, a = 48, torch.randn(48, H, D, dtype=torch.float64)
+
+    def u(x, t, r):
+        assert t.shape == r.shape == (x.shape[0], H) and bool(((t == 1) <= (r == 1)).all())   # prefix: t = r = 1
+        return (x[:, :1] + t[:, :1, None]).expand_as(x)
+
+    kw = dict(ratio_r_neq_t=1.0, adaptive_p=0.0, time_dist="uniform", dudt=dudt, rtc_max_delay=2)
+    loss = meanflow_loss(u, a, torch.Generator().manual_seed(5), fd_one_call=False, **kw)
+    g = torch.Generator().manual_seed(5)
+    t, r, _ = sample_meanflow_times(B, 1.0, 0.4, 1.0, g, dtype=torch.float64, dist="uniform")
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    d = sample_delays(B, 2, g)
+    keep = prefix_mask(d, H)
+    v = a - e
+    z = (1 - t[:, None, None]) * e + t[:, None, None] * a
+    x0 = torch.where(keep[:, :1, None], a[:, :1], z[:, :1])
+    out = (x0 + torch.where(keep[:, :1], 1.0, t[:, None])[..., None]).expand_as(a)
+    dudt_ = torch.where(keep[:, :1, None], torch.zeros_like(v[:, :1]), v[:, :1] + 1).expand_as(a)
+    target = v - (t - r)[:, None, None] * dudt_
+    live = ~keep
+    want = torch.stack([(out - target)[b][live[b]].square().mean() for b in range(B)]).mean()
+    tol = 1e-12 if dudt == "jvp" else 1e-6
+    torch.testing.assert_close(loss, want, rtol=tol, atol=0)
+    assert set(d.tolist()) == {0, 1, 2}
+
+
+def test_meanflow_loss_with_a_prefix_trains_every_target_and_tangent():
+    policy = tiny("mean_flow", rtc_max_delay=3).train()
+    batch = {"state": torch.randn(6, 6), "actions": torch.randn(6, H, D)}
+    for target, tangent in [("identity", "sampled"), ("identity", "boundary"), ("split", "sampled")]:
+        for dudt in ("jvp", "finite_difference"):
+            loss = meanflow_loss(policy._flow_net, policy.normalizers["actions"].normalize(batch["actions"]),
+                                 torch.Generator().manual_seed(0), policy._prepare(batch), ratio_r_neq_t=0.5,
+                                 dudt=dudt, target=target, tangent=tangent, rtc_max_delay=3)
+            assert torch.isfinite(loss)
+            loss.backward()
+    with pytest.raises(ValueError, match=r"rtc_max_delay: expected an integer number of control steps in \[0, 7\]"):
+        flow_matching_loss(lambda x, t: x, torch.zeros(2, H, D), rtc_max_delay=H)
+
+
+# ---------------------------------------------------------------------------- sampling
+@pytest.mark.parametrize("which", ["ode", "meanflow"])
+def test_prefix_samplers_feed_the_clean_prefix_on_every_step_and_keep_it(which):
+    noise = torch.randn(5, H, D, dtype=torch.float64)
+    prefix = torch.randn(5, 2, D, dtype=torch.float64)
+    calls = []
+
+    def net(x, t, *r):
+        calls.append(1)
+        assert torch.equal(x[:, :2], prefix) and bool((t[:, :2] == 1).all()) and bool((t[:, 2:] < 1).all())
+        return torch.sin(x) + t[..., None]
+
+    steps = 3
+    if which == "ode":
+        out, plain = sample_ode_prefix(net, noise, prefix, steps), None
+    else:
+        out = sample_meanflow_prefix(net, noise, prefix, steps)
+    assert torch.equal(out[:, :2], prefix) and len(calls) == steps
+    # No prefix: the plain sampler exactly.
+    empty = prefix[:, :0]
+    f = lambda x, t, *r: torch.sin(x) + (t[..., None] if t.dim() == 2 else t[:, None, None])    # noqa: E731
+    plain = sample_ode(f, noise, steps) if which == "ode" else sample_meanflow(f, noise, steps)
+    got = sample_ode_prefix(f, noise, empty, steps) if which == "ode" else sample_meanflow_prefix(f, noise, empty, steps)
+    torch.testing.assert_close(got, plain, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("decoder,steps", [("flow_matching", 10), ("mean_flow", 1), ("mean_flow", 2)])
+def test_trained_mode_keeps_the_prefix_exactly_with_the_plain_chunks_network_calls(decoder, steps):
+    policy = tiny(decoder, rtc_max_delay=3)
+    calls = []
+    forward = policy.model.forward
+    policy.model.forward = lambda *a, **k: (calls.append(1), forward(*a, **k))[1]
+    batch, prev = {"state": torch.randn(3, 6)}, torch.randn(3, H - 2, D)
+    gen = lambda: torch.Generator().manual_seed(0)                          # noqa: E731
+    plain = policy.predict_action_chunk(batch, steps=steps, generator=gen())
+    n_plain, calls[:] = len(calls), []
+    out = policy.predict_action_chunk(batch, steps=steps, generator=gen(), prev_chunk=prev, delay=3)
+    assert len(calls) == n_plain == steps
+    assert torch.equal(out[:, :3], prev[:, :3]) and not torch.allclose(out[:, 3:], plain[:, 3:])
+    # rtc_mode=None on this checkpoint is trained; delay 0 is the plain chunk.
+    assert policy.resolve_rtc_mode(None, 3) == "trained" and policy.resolve_rtc_mode(None, 4) == "guided"
+    same = policy.predict_action_chunk(batch, steps=steps, generator=gen(), prev_chunk=prev, delay=0)
+    assert torch.equal(same, plain)
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    ({"decoder": "flow_matching", "rtc_mode": "trained"}, ["rtc_mode", "'trained' needs", "--rtc-max-delay",
+                                                           "rtc_max_delay=0"]),
+    ({"decoder": "flow_matching", "rtc_mode": "always"}, ["rtc_mode", "expected one of", "'always'"]),
+    ({"decoder": "mean_flow", "rtc_mode": "trained", "max_delay": 1}, ["delay", "2 exceeds rtc_max_delay=1"]),
+    ({"decoder": "flow_matching", "rtc_mode": "trained", "max_delay": 2, "sampler": "sde"},
+     ["rtc_mode", "'trained' feeds", "sampler='sde'"]),
+])
+def test_bad_rtc_modes_give_one_line(kwargs, words):
+    policy = tiny(kwargs["decoder"], rtc_max_delay=kwargs.get("max_delay", 0))
+    with pytest.raises(ValueError) as err:
+        policy.predict_action_chunk({"state": torch.zeros(2, 6)}, prev_chunk=torch.zeros(2, 5, D), delay=2,
+                                    rtc_mode=kwargs["rtc_mode"], sampler=kwargs.get("sampler"))
+    msg = str(err.value)
+    assert "\n" not in msg and all(w in msg for w in words), msg
+
+
+def test_guided_one_step_meanflow_warns_once_that_it_is_an_output_blend():
+    policy = tiny("mean_flow", num_inference_timesteps=1)
+    batch, prev = {"state": torch.zeros(2, 6)}, torch.zeros(2, 5, D)
+    with pytest.warns(UserWarning, match=r"output blend \(1 − W\)·x̂ \+ W·prev_chunk"):
+        policy.predict_action_chunk(batch, prev_chunk=prev, delay=2)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        policy.predict_action_chunk(batch, prev_chunk=prev, delay=2)       # once
+        policy.predict_action_chunk(batch, prev_chunk=prev, delay=2, steps=2)
+
+
+@pytest.mark.parametrize("mode", ["guided", "trained"])
+def test_rtc_covers_every_row_eval_executes_beyond_config_n_action_steps(mode):
+    """eval --n-action-steps 3 on a checkpoint with n_action_steps = 1: prev_chunks = old[3:] (L = 5), d = 1,
+    executed rows 1..3. Guided (execution horizon, weights 1, 1-step MeanFlow) lands exactly on the previous
+    chunk over rows 0..3 and leaves row 4 free; before, rows ≥ d + 1 = 2 were executed unguided."""
+    import numpy as np
+
+    from action_decoder.evaluate import make_policy_fn
+
+    policy = tiny("mean_flow", n_action_steps=1, num_inference_timesteps=1, rtc_schedule="ones",
+                  rtc_horizon="execution", rtc_max_delay=2 if mode == "trained" else 0)
+    fn = make_policy_fn(policy, 1, None, None, torch.Generator().manual_seed(0), rtc_mode=mode)
+    prev = np.random.default_rng(0).normal(size=(2, H - 3, D)).astype(np.float32)
+    with pytest.warns(UserWarning, match="output blend") if mode == "guided" else _nothing():
+        out = fn(np.zeros((2, 6), np.float32), np.zeros(2, np.int64), prev_chunks=prev, delay=1)
+    np.testing.assert_array_equal(out[:, :1], prev[:, :1])
+    if mode == "guided":
+        np.testing.assert_allclose(out[:, :4], prev[:, :4], atol=1e-5)       # every executed row
+        assert np.abs(out[:, 4] - prev[:, 4]).max() > 1e-3                    # the first row past them: free
+        explicit = policy.predict_action_chunk({"state": torch.zeros(2, 6)}, prev_chunk=torch.from_numpy(prev),
+                                               delay=1, n_action_steps=1, generator=torch.Generator().manual_seed(0))
+        assert (explicit[:, 2] - torch.from_numpy(prev[:, 2])).abs().max() > 1e-3     # s = 1: row 2 free
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
+
+
+# ---------------------------------------------------------------------------- config and CLI
+def test_config_saves_rtc_max_delay_and_older_formats_read_zero(tmp_path):
+    cfg = DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4)
+    cfg.to_json(tmp_path / "c.json")
+    saved = json.loads((tmp_path / "c.json").read_text())
+    assert CONFIG_FORMAT_VERSION == 7 and saved["rtc_max_delay"] == 4
+    assert DecoderConfig.from_json(tmp_path / "c.json").rtc_max_delay == 4
+    old = {k: v for k, v in saved.items() if k != "rtc_max_delay"}
+    (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 6}))
+    assert DecoderConfig.from_json(tmp_path / "old.json").rtc_max_delay == 0
+    with pytest.raises(ValueError, match="rtc_max_delay: training-time real-time chunking needs a flow_matching or "
+                                         "mean_flow decoder"):
+        DecoderConfig(decoder_type="DDPM", rtc_max_delay=2)
+    with pytest.raises(ValueError, match="rtc_max_delay: expected fewer control steps than action_chunk_size=16"):
+        DecoderConfig(decoder_type="mean_flow", rtc_max_delay=16)
+    with pytest.raises(ValueError, match="rtc_max_delay: expected a non-negative integer"):
+        DecoderConfig(decoder_type="mean_flow", rtc_max_delay=1.5)
+
+
+def test_train_rtc_max_delay_refuses_ddpm_in_one_line(capsys):
+    from action_decoder import cli
+
+    assert cli.main(["train", "--decoder", "DDPM", "--rtc-max-delay", "2", "--steps", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("action-decoder: error: --rtc-max-delay: training-time real-time "
+                                              "chunking needs --decoder flow_matching or mean_flow")
+
+
+def test_cli_round_trip_train_rtc_max_delay_then_eval_rtc_mode(tmp_path, monkeypatch, capsys):
+    """train --rtc-max-delay 2 saves it in config.json; eval --rtc --rtc-mode trained|guided runs and records it."""
+    from action_decoder import cli
+
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "run"
+    assert cli.main(["train", "--task", "metaworld/reach", "--decoder", "mean_flow", "--rtc-max-delay", "2",
+                     "--steps", "2", "--demos", "1", "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1",
+                     "--eval-episodes", "0", "--no-progress", "--checkpoint-every", "2", "--log-every", "1",
+                     "--output-dir", str(out)]) == 0
+    ckpt = out / "final"
+    assert json.loads((ckpt / "config.json").read_text())["rtc_max_delay"] == 2
+    args = ["eval", "--checkpoint", str(ckpt), "--episodes", "1", "--num-envs", "1", "--max-steps", "12",
+            "--delay", "2", "--rtc"]
+    for mode in ("trained", "guided"):
+        assert cli.main(args + ["--rtc-mode", mode]) == 0
+        summary = json.loads((ckpt / f"eval_ode_k1_n4_d2_rtc-{mode}_seed0_e1_t12.json").read_text())
+        assert summary["rtc"] is True and summary["rtc_mode"] == mode
+    assert cli.main(args) == 0                                               # default: trained on this checkpoint
+    assert json.loads((ckpt / "eval_ode_k1_n4_d2_rtc_seed0_e1_t12.json").read_text())["rtc_mode"] == "trained"
+    capsys.readouterr()
+    assert cli.main(args[:-3] + ["--rtc-mode", "trained"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--rtc-mode: chooses how --rtc conditions" in err
+
+
+# ---------------------------------------------------------------------------- the benchmark's measures
+class _RoutePolicy:
+    """A stand-in policy: with a previous chunk it continues it; without one it takes route +1."""
+
+    config = DecoderConfig(decoder_type="flow_matching", state_dim=4, action_dim=4)
+
+    def sample(self, batch, steps=None, generator=None, prev_chunk=None, delay=0, rtc_mode=None):
+        from types import SimpleNamespace
+
+        from benchmarks.multimodal import routes
+        if prev_chunk is None:
+            return SimpleNamespace(actions=routes(batch["state"])[:, 0])
+        pad = prev_chunk[:, -1:].expand(-1, 16 - prev_chunk.shape[1], -1)
+        return SimpleNamespace(actions=torch.cat([prev_chunk, pad], 1))
+
+
+def test_synthetic_route_consistency_counts_re_plans_that_keep_the_committed_route():
+    from benchmarks.rtc_modes import run_synthetic
+
+    fake = _RoutePolicy()
+    rows = run_synthetic({"flow_matching": {"plain": fake, "rtc": fake}}, states=64, samples=2, seed=0)
+    by = {(r["delay"], r["arm"]): r for r in rows}
+    assert by[(2, "trained")]["route_consistency"] == 1.0 and by[(2, "trained")]["off_route"] == 0.0
+    assert 0.3 < by[(2, "naive")]["route_consistency"] < 0.7          # route +1 against a 50/50 committed route
+    assert by[(2, "trained")]["switch_jerk"] < by[(2, "naive")]["switch_jerk"]
+    assert "mode_metrics" in by[(0, "naive")] and "mode_metrics" not in by[(2, "naive")]
+
+
+def test_obstacle_episode_with_delay_runs_the_scripted_expert_to_the_goal_on_one_route():
+    """The scripted expert (above) as the policy: every re-plan keeps the route, and the delayed
+    loop executes the old chunk's actions while the new one is planned."""
+    import numpy as np
+
+    from action_decoder.envs.obstacle_routes import SPEED, expert_action
+    from benchmarks.rtc_modes import obstacle_episode
+
+    class Expert:
+        config = DecoderConfig(decoder_type="flow_matching", state_dim=6, action_dim=2)
+
+        def sample(self, batch, **kw):
+            from types import SimpleNamespace
+            obs, out = batch["state"][0].numpy().copy(), []
+            for _ in range(16):
+                a = expert_action(obs, 1)
+                out.append(a)
+                obs[:2] = obs[:2] + SPEED * np.clip(a, -1, 1)
+            return SimpleNamespace(actions=torch.from_numpy(np.stack(out))[None])
+
+    for d in (0, 2, 4):
+        res = obstacle_episode(Expert(), 1, "trained", d, layout=1_000_000, noise_seed=0)
+        assert res["success"] and not res["collided"] and res["checks"] and all(res["checks"])
