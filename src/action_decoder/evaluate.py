@@ -160,6 +160,19 @@ def check_simulator_policy(policy: ActionDecoderPolicy, checkpoint: str, task: O
                      f"{checkpoint} was trained on {trained_on(config)}: {instead}")
 
 
+def eval_tasks(task: Optional[str], trained: list, source: str) -> list:
+    """The Meta-World tasks to evaluate: `--task` (among a multi-task policy's own) or the policy's trained ones."""
+    from .envs import canonical_task, resolve_tasks
+
+    tasks = resolve_tasks(task) if task else trained
+    if not tasks:
+        raise ValueError(f"--task: {source} names no task; pass --task metaworld/<task>")
+    unknown = [t for t in tasks if canonical_task(t) not in trained] if len(trained) > 1 else []
+    if unknown:
+        raise ValueError(f"--task: {unknown} not among the tasks this policy was trained on: {trained}")
+    return tasks
+
+
 EPISODE_CAP = 500
 """Meta-World's episode cap (`envs.MAX_EPISODE_STEPS`, here without importing the simulator)."""
 
@@ -185,7 +198,7 @@ def run_eval(cfg: EvalConfig) -> dict:
     # Before the simulator is imported: a policy of another robot needs neither the sim nor a task.
     check_simulator_policy(policy, cfg.checkpoint, cfg.task, "eval")
 
-    from .envs import canonical_task, evaluate, resolve_tasks
+    from .envs import canonical_task, evaluate
     from .envs.render import EpisodeCamera
 
     n_exec = cfg.n_action_steps or policy.config.n_action_steps
@@ -203,12 +216,7 @@ def run_eval(cfg: EvalConfig) -> dict:
                          f"without --rtc")
     rtc_mode = policy.resolve_rtc_mode(cfg.rtc_mode, cfg.delay, cfg.sampler) if cfg.rtc else None
     trained = list(policy.config.extra.get("tasks") or [])
-    tasks = resolve_tasks(cfg.task) if cfg.task else trained
-    if not tasks:
-        raise ValueError(f"--task: the checkpoint {cfg.checkpoint} names no task; pass --task metaworld/<task>")
-    unknown = [t for t in tasks if canonical_task(t) not in trained] if len(trained) > 1 else []
-    if unknown:
-        raise ValueError(f"--task: {unknown} not among the tasks this policy was trained on: {trained}")
+    tasks = eval_tasks(cfg.task, trained, f"the checkpoint {cfg.checkpoint}")
     policy.resolve_sampler(cfg.sampler)   # fail early on an unsafe decoder/sampler mix
     if policy.config.uses_cameras:
         from .envs.render import check_rendering

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .config import DecoderConfig
-from .evaluate import EvalConfig, policy_camera_rig, row_generators, write_summary
+from .evaluate import EvalConfig, eval_tasks, policy_camera_rig, row_generators, write_summary
 from .flows.paths import randn_rows
 from .runtime import CONTEXT, OnnxPolicy
 
@@ -56,7 +56,7 @@ def make_onnx_policy_fn(runner: OnnxPolicy, num_tasks: int, seed: int):
 
 
 def run_eval_onnx(cfg: EvalConfig) -> dict:
-    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate, resolve_tasks
+    from .envs import MAX_EPISODE_STEPS, canonical_task, evaluate
 
     for name, why in _REFUSED.items():
         if getattr(cfg, name):
@@ -78,12 +78,7 @@ def run_eval_onnx(cfg: EvalConfig) -> dict:
         raise ValueError(f"--n-action-steps/--delay: expected 1 <= n_action_steps <= {h} and 0 <= delay <= "
                          f"min(n_action_steps, {h} - n_action_steps), got {cfg.n_action_steps} and {cfg.delay}")
     trained = list(config.extra.get("tasks") or [])
-    tasks = resolve_tasks(cfg.task) if cfg.task else trained
-    if not tasks:
-        raise ValueError(f"--task: {cfg.onnx} names no task; pass --task metaworld/<task>")
-    unknown = [t for t in tasks if canonical_task(t) not in trained] if len(trained) > 1 else []
-    if unknown:
-        raise ValueError(f"--task: {unknown} not among the tasks this policy was trained on: {trained}")
+    tasks = eval_tasks(cfg.task, trained, cfg.onnx)
     if config.uses_cameras:
         from .envs.render import check_rendering
 
