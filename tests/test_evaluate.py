@@ -240,3 +240,22 @@ def test_the_episode_cap_eval_checks_before_importing_the_simulator_is_meta_worl
     from action_decoder.evaluate import EPISODE_CAP
 
     assert EPISODE_CAP == MAX_EPISODE_STEPS
+
+
+def test_a_policy_of_lerobot_layout_data_is_a_simulator_policy():
+    """`record --layout lerobot` policies observe LeRobot's 4-d agent position; eval gives it to them."""
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+    from action_decoder.envs.lerobot_view import AGENT_POS_DIM
+    from action_decoder.evaluate import check_simulator_policy
+    from action_decoder.model_card import LEROBOT_AGENT_POS_DIM
+
+    assert LEROBOT_AGENT_POS_DIM == AGENT_POS_DIM
+    extra = {"tasks": ["door-close-v3"], "observation_layout": "lerobot"}
+    policy = ActionDecoderPolicy(DecoderConfig(state_dim=4, action_dim=4, hidden_size=16, num_hidden_layers=1,
+                                               num_attention_heads=2, num_key_value_heads=1, extra=extra))
+    check_simulator_policy(policy, "ckpt", None, "eval")                   # no refusal
+    other = ActionDecoderPolicy(DecoderConfig(state_dim=4, action_dim=4, hidden_size=16, num_hidden_layers=1,
+                                              num_attention_heads=2, num_key_value_heads=1,
+                                              extra={"tasks": ["door-close-v3"]}))
+    with pytest.raises(ValueError, match="closed-loop evaluation runs Meta-World tasks"):
+        check_simulator_policy(other, "ckpt", None, "eval")

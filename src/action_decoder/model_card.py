@@ -58,14 +58,21 @@ METAWORLD_TASK = re.compile(r"^[a-z][a-z0-9-]*-v3$")
 """A Meta-World v3 task name, as generated demonstrations and `action-decoder record`'s datasets carry them."""
 
 
+LEROBOT_AGENT_POS_DIM = 4
+"""The state LeRobot's Meta-World env observes (`envs.lerobot_view.AGENT_POS_DIM`, here without the simulator)."""
+
+
 def simulator_policy(config: DecoderConfig) -> bool:
     """Whether `action-decoder eval` and `finetune` can run this policy closed loop: Meta-World's state
-    and action widths (39, 4), and Meta-World task names, if it names any (a LeRobot dataset's task
-    strings, "push the block", name none)."""
+    and action widths (39, 4; a policy of `record --layout lerobot` data observes LeRobot's 4-d agent
+    position instead), and Meta-World task names, if it names any (a LeRobot dataset's task strings,
+    "push the block", name none)."""
     from .state_layout import METAWORLD_STATE_DIM
 
+    lerobot_view = config.extra.get("observation_layout") == "lerobot"
+    state_dim = LEROBOT_AGENT_POS_DIM if lerobot_view else METAWORLD_STATE_DIM
     tasks = list(config.extra.get("tasks") or [])
-    return (config.state_dim, config.action_dim) == (METAWORLD_STATE_DIM, 4) and \
+    return (config.state_dim, config.action_dim) == (state_dim, 4) and \
         all(isinstance(t, str) and METAWORLD_TASK.match(t) for t in tasks)
 
 
