@@ -263,7 +263,9 @@ def collect(runs: Path) -> list[dict]:
             bc_config = run / "bc" / "final" / "config.json"
             trained = json.loads(bc_config.read_text())["extra"].get("train", {}) if bc_config.is_file() else {}
             rows.append({"task": log["task"], "decoder": bc["decoder_type"], "algo": log["config"]["algo"],
-                         "sigma": log["config"].get("sigma"), "recipe": recipe(log["config"]),
+                         # σ scales the chain methods' SDE; DSRL's policy has none
+                         "sigma": None if log["config"]["algo"] == "dsrl" else log["config"].get("sigma"),
+                         "recipe": recipe(log["config"]),
                          "cpu_budget": log["config"].get("max_cpu_minutes"), "bc_demos": trained.get("demos"),
                          "bc_train_steps": trained.get("steps"),
                          "seed": log["config"].get("seed", 0), "half": half(log["task"]),
