@@ -222,3 +222,17 @@ def test_final_is_logged_at_the_step_of_its_weights_not_the_runs_last_row(tmp_pa
     lone = tmp_path / "copied" / "final"                        # a final/ outside any run: events beside the summary
     _bc().save_pretrained(lone)
     assert checkpoint_run(lone) == (None, 0)
+
+
+def test_a_resume_in_the_same_second_writes_an_event_file_read_after_the_earlier_one(tmp_path):
+    """TensorBoard reads event files in name order (second, host, pid): a resume's file must sort after the
+    killed run's, or the killed run's events past the restart would survive its purge marker."""
+    import time
+
+    later = int(time.time()) + 1
+    (tmp_path / f"events.out.tfevents.{later}.host.99999999.0").write_bytes(b"")   # a file of this second or later
+    with RunLogger(tmp_path, start_step=3) as log:
+        log.log(4, {"loss": 1.0}, "train")
+    ours = [f.name for f in tmp_path.glob("events.out.tfevents.*") if ".99999999." not in f.name]
+    assert len(ours) == 1 and int(ours[0].split(".")[3]) > later
+    assert sorted(f.name for f in tmp_path.glob("events.out.tfevents.*"))[-1] == ours[0]

@@ -13,6 +13,7 @@ import os
 import re
 import secrets
 import sys
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -53,6 +54,17 @@ def _keep_through(path: Path, step: int) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
     os.replace(tmp, path)
+
+
+def _after_existing_event_files(run_dir: Path) -> None:
+    """Wait, if need be, until the clock's second is past every event file's in `run_dir`. TensorBoard reads
+    a directory's files in name order, `events.out.tfevents.<second>.<host>.<pid>…`: a file opened in the
+    same second as an earlier one, by a process of a lower pid (a resume right after a killed run), would
+    be read before it, and the earlier run's events past the restart would outlive its purge marker."""
+    seconds = [int(m.group(1)) for f in run_dir.glob("events.out.tfevents.*")
+               if (m := re.match(r"events\.out\.tfevents\.(\d+)\.", f.name))]
+    while seconds and int(time.time()) <= max(seconds):
+        time.sleep(0.05)
 
 
 def _start_wandb(run_dir: Path, project: str, job_type: str, config: dict, name: str, resume: Optional[bool]):
@@ -98,6 +110,7 @@ class RunLogger:
         if self.jsonl is not None and start_step is not None:
             with _writing(self.jsonl, self.run_dir):
                 _keep_through(self.jsonl, start_step)
+        _after_existing_event_files(self.run_dir)
         self.events = SummaryWriter(str(self.run_dir), purge_step=None if start_step is None else start_step + 1)
         self.wandb = None
         self._wandb_prefixes: set[str] = set()
