@@ -121,6 +121,16 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
     return out
 
 
+def cells(pols_by_decoder: dict):
+    """(decoder, steps, its arms' policies, delay, arm) of every cell whose decoder was trained."""
+    for decoder, steps in SETTINGS:
+        pols = pols_by_decoder.get(decoder)
+        if pols is not None:
+            for d in DELAYS:
+                for arm in ARMS:
+                    yield decoder, steps, pols, d, arm
+
+
 def arm_policy(pols: dict, arm: str):
     return pols["rtc"] if arm == "trained" else pols["plain"]
 
@@ -146,32 +156,27 @@ def run_synthetic(pols_by_decoder: dict, states: int, samples: int, seed: int) -
     other = route_rows(state, -sign, torch.arange(H))
     prev = committed[:, 2: 2 + H - S]                                                      # [N, L, 4]
     rows = []
-    for (decoder, steps) in SETTINGS:
-        pols = pols_by_decoder.get(decoder)
-        if pols is None:
-            continue
-        for d in DELAYS:
-            for arm in ARMS:
-                gens = [torch.Generator().manual_seed(seed * 100_000 + i) for i in range(n)]
-                new = chunk(arm_policy(pols, arm), state, steps, arm, prev, d, gens)      # [N, H, 4]
-                ex = slice(d, d + S)
-                dist_a = (new[:, ex] - committed[:, 2:][:, ex]).square().mean((1, 2)).sqrt()
-                dist_b = (new[:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
-                gap = (committed[:, 2:][:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
-                keep = (dist_a < dist_b) & (dist_a < 0.25 * gap)
-                off = (dist_a >= 0.25 * gap) & (dist_b >= 0.25 * gap)
-                seq = torch.cat([committed[:, : 2 + d], new[:, d:]], 1).numpy()           # executed: A, then new
-                jerk = float(np.mean([switch_jerk(s, 2 + d) for s in seq]))
-                row = {"task": "synthetic", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
-                       "samples": n, "route_consistency": keep.float().mean().item(),
-                       "off_route": off.float().mean().item(), "switch_jerk": jerk}
-                if d == 0 and arm != "guided":
-                    modes = routes(state[::samples])                                       # [states, 2, H, 4]
-                    free = chunk(arm_policy(pols, arm), state, steps, "naive", None, 0, gens)
-                    row["mode_metrics"] = mode_metrics(free.reshape(states, samples, H, 4), modes,
-                                                       0.1 * separation())
-                rows.append(row)
-                print(json.dumps({k: v for k, v in row.items() if k != "mode_metrics"}), flush=True)
+    for decoder, steps, pols, d, arm in cells(pols_by_decoder):
+        gens = [torch.Generator().manual_seed(seed * 100_000 + i) for i in range(n)]
+        new = chunk(arm_policy(pols, arm), state, steps, arm, prev, d, gens)      # [N, H, 4]
+        ex = slice(d, d + S)
+        dist_a = (new[:, ex] - committed[:, 2:][:, ex]).square().mean((1, 2)).sqrt()
+        dist_b = (new[:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
+        gap = (committed[:, 2:][:, ex] - other[:, ex]).square().mean((1, 2)).sqrt()
+        keep = (dist_a < dist_b) & (dist_a < 0.25 * gap)
+        off = (dist_a >= 0.25 * gap) & (dist_b >= 0.25 * gap)
+        seq = torch.cat([committed[:, : 2 + d], new[:, d:]], 1).numpy()           # executed: A, then new
+        jerk = float(np.mean([switch_jerk(s, 2 + d) for s in seq]))
+        row = {"task": "synthetic", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+               "samples": n, "route_consistency": keep.float().mean().item(),
+               "off_route": off.float().mean().item(), "switch_jerk": jerk}
+        if d == 0 and arm != "guided":
+            modes = routes(state[::samples])                                       # [states, 2, H, 4]
+            free = chunk(arm_policy(pols, arm), state, steps, "naive", None, 0, gens)
+            row["mode_metrics"] = mode_metrics(free.reshape(states, samples, H, 4), modes,
+                                               0.1 * separation())
+        rows.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "mode_metrics"}), flush=True)
     return rows
 
 
@@ -218,24 +223,19 @@ def obstacle_episode(policy, steps: int, arm: str, d: int, layout: int, noise_se
 
 def run_obstacle(pols_by_decoder: dict, episodes: int, seed: int) -> list[dict]:
     rows = []
-    for (decoder, steps) in SETTINGS:
-        pols = pols_by_decoder.get(decoder)
-        if pols is None:
-            continue
-        for d in DELAYS:
-            for arm in ARMS:
-                res = [obstacle_episode(arm_policy(pols, arm), steps, arm, d, 1_000_000 + seed * 1000 + j, j)
-                       for j in range(episodes)]
-                checks = [c for r in res for c in r["checks"]]
-                jerks = [j for r in res for j in r["jerks"]]
-                row = {"task": "obstacle", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
-                       "episodes": episodes, "success": sum(r["success"] for r in res) / episodes,
-                       "collided": sum(r["collided"] for r in res) / episodes,
-                       "replans_checked": len(checks),
-                       "route_consistency": sum(checks) / len(checks) if checks else float("nan"),
-                       "switch_jerk": float(np.mean(jerks)) if jerks else float("nan")}
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+    for decoder, steps, pols, d, arm in cells(pols_by_decoder):
+        res = [obstacle_episode(arm_policy(pols, arm), steps, arm, d, 1_000_000 + seed * 1000 + j, j)
+               for j in range(episodes)]
+        checks = [c for r in res for c in r["checks"]]
+        jerks = [j for r in res for j in r["jerks"]]
+        row = {"task": "obstacle", "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+               "episodes": episodes, "success": sum(r["success"] for r in res) / episodes,
+               "collided": sum(r["collided"] for r in res) / episodes,
+               "replans_checked": len(checks),
+               "route_consistency": sum(checks) / len(checks) if checks else float("nan"),
+               "switch_jerk": float(np.mean(jerks)) if jerks else float("nan")}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
     return rows
 
 

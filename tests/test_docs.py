@@ -181,17 +181,23 @@ def test_vlm_guide_example_runs():
     assert len(cache.layers) == policy.config.vlm_num_layers
 
 
+def _run_in(block: str, name: str, where) -> dict:
+    """Execute a guide's Python block with `where` as the working directory; returns its names."""
+    scope: dict = {}
+    cwd = os.getcwd()
+    os.chdir(where)
+    try:
+        exec(compile(block, name, "exec"), scope)
+    finally:
+        os.chdir(cwd)
+    return scope
+
+
 def test_cameras_guide_example_runs():
     """The cameras guide trains and samples a camera policy on the LeRobot-written camera fixture."""
     blocks = [b for b in _python_blocks(ROOT / "docs" / "guides" / "cameras.md") if "v30_cams" in b]
     assert len(blocks) == 1
-    scope: dict = {}
-    cwd = os.getcwd()
-    os.chdir(ROOT)
-    try:
-        exec(compile(blocks[0], "cameras.md", "exec"), scope)
-    finally:
-        os.chdir(cwd)
+    scope = _run_in(blocks[0], "cameras.md", ROOT)
     assert scope["chunk"].shape[1:] == (8, 2) and scope["policy"].config.cameras == (
         "observation.images.top", "observation.images.wrist")
 
@@ -207,13 +213,7 @@ def test_real_time_chunking_guide_loop_runs_as_written(tmp_path):
     torch.manual_seed(0)
     ActionDecoderPolicy(DecoderConfig(decoder_type="flow_matching", hidden_size=32, num_hidden_layers=1,
                                       num_inference_timesteps=2)).save_pretrained(tmp_path / "runs" / "push" / "final")
-    scope: dict = {}
-    cwd = os.getcwd()
-    os.chdir(tmp_path)
-    try:
-        exec(compile(blocks[0], "real_time_chunking.md", "exec"), scope)
-    finally:
-        os.chdir(cwd)
+    scope = _run_in(blocks[0], "real_time_chunking.md", tmp_path)
     s, d, chunk, queue = scope["s"], scope["d"], scope["chunk"], scope["queue"]
     assert len(queue) == s + d and all(torch.equal(a, b) for a, b in zip(queue, chunk[0, : s + d]))
 
