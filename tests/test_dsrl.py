@@ -18,7 +18,7 @@ from action_decoder.cli import main
 from action_decoder.noise_actor import NoiseActor, kl_to_prior
 from action_decoder.rl.dsrl import decode, dsrl_policy, dsrl_update
 from action_decoder.rl.sac import ReplayBuffer, Temperature, make_target
-from action_decoder.rl.critics import TwinQ
+from action_decoder.rl.critics import QEnsemble, TwinQ, subset_min
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_rl import D, H, S, _bc  # noqa: E402
@@ -101,7 +101,7 @@ def test_config_refuses_a_bad_noise_actor_width(bad):
         DecoderConfig(noise_actor_hidden=bad)
 
 
-def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None):
+def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None, members=2):
     policy = dsrl_policy(_bc(decoder), hidden=16, bound=2.5, steps=None)
     gen = torch.Generator().manual_seed(0)
     n = 16
@@ -111,13 +111,13 @@ def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None
                 "reward": torch.rand(n, generator=gen) if reward is None else reward,
                 "next_state": torch.randn(n, S, generator=gen), "next_progress": torch.rand(n, generator=gen),
                 "done": torch.full((n,), done)})
-    q = TwinQ(S, H * D, hidden=32)
+    q = TwinQ(S, H * D, hidden=32) if members == 2 else QEnsemble(S, H * D, members, hidden=32)
     critics = {"q": q, "q_target": make_target(q)}
     temperature = Temperature(0.01, 0.0)
     opts = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=3e-3),
             "q": torch.optim.Adam(q.parameters(), lr=3e-3), "alpha": torch.optim.Adam(temperature.parameters(), lr=0.0)}
     if noise_critic == "action":
-        qa = TwinQ(S, H * D, hidden=32)
+        qa = TwinQ(S, H * D, hidden=32) if members == 2 else QEnsemble(S, H * D, members, hidden=32)
         critics.update(q_action=qa, q_action_target=make_target(qa))
         opts["q_action"] = torch.optim.Adam(qa.parameters(), lr=3e-3)
     cfg = SimpleNamespace(sac_batch_size=16, gamma=0.9, tau=0.5, grad_clip=10.0, kl_coef=0.0, alpha_lr=0.0,
@@ -125,10 +125,10 @@ def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None
     return policy, critics, temperature, opts, buffer, cfg, gen
 
 
-@pytest.mark.parametrize("noise_critic", ["noise", "action"])
-def test_critic_learns_the_reward_of_terminal_transitions(noise_critic):
+@pytest.mark.parametrize("noise_critic,members", [("noise", 2), ("action", 2), ("noise", 5), ("action", 5)])
+def test_critic_learns_the_reward_of_terminal_transitions(noise_critic, members):
     """done everywhere: the TD target is the reward itself, whatever the actor does."""
-    policy, critics, temperature, opts, buffer, cfg, gen = _setup(noise_critic)
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup(noise_critic, members=members)
     make_batch = lambda s: {"state": s}                                     # noqa: E731
     key = "q_action_loss" if noise_critic == "action" else "q_loss"
     losses = [dsrl_update(policy, critics, temperature, opts, buffer, make_batch, cfg, gen)[key] for _ in range(100)]
@@ -136,10 +136,36 @@ def test_critic_learns_the_reward_of_terminal_transitions(noise_critic):
     if noise_critic == "action":    # the noise critic follows Q_A through the decoder (aliasing)
         b = {k: v[:buffer.size] for k, v in buffer.data.items()}
         w = torch.randn(16, H, D, generator=gen)
-        qa = torch.min(*critics["q_action"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"],
-                                            decode(policy, {"state": b["state"]}, w)))
-        qw = torch.min(*critics["q"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"], w))
+        qa = subset_min(critics["q_action"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"],
+                                            decode(policy, {"state": b["state"]}, w)), members, gen)
+        qw = subset_min(critics["q"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"], w),
+                        members, gen)
         assert (qa - qw).abs().mean() < 0.5 * qa.abs().mean()
+
+
+def test_subset_min_is_the_minimum_of_k_members_drawn_without_replacement():
+    """Members of constant values 0..4: the minimum over all is 0; over 2 drawn without replacement it
+    is 0 with probability 1 − C(4, 2)/C(5, 2) = 0.4 and 3 with probability 1/C(5, 2) = 0.1, never 4."""
+    qs = tuple(torch.full((3,), float(i)) for i in range(5))
+    gen = torch.Generator().manual_seed(0)
+    assert torch.equal(subset_min(qs, 5, gen), torch.zeros(3))
+    draws = torch.stack([subset_min(qs, 2, gen) for _ in range(4000)])
+    assert (draws == draws[:, :1]).all()                       # one pair per call, the same for every row
+    first = draws[:, 0]
+    assert abs(float((first == 0).float().mean()) - 0.4) < 0.03
+    assert abs(float((first == 3).float().mean()) - 0.1) < 0.02 and not (first == 4).any()
+
+
+def test_q_ensemble_members_are_independent_and_twin_matches_twin_q():
+    torch.manual_seed(0)
+    ens = QEnsemble(S, H * D, 2, hidden=32)
+    torch.manual_seed(0)
+    twin = TwinQ(S, H * D, hidden=32, norm_every_layer=True)
+    x = (torch.randn(4, S), torch.rand(4), torch.randn(4, H, D))
+    for a, b in zip(ens(*x), twin(*x)):
+        assert torch.equal(a, b)
+    q1, q2, q3 = QEnsemble(S, H * D, 3, hidden=32)(*x)
+    assert q1.shape == (4,) and not torch.equal(q1, q2) and not torch.equal(q2, q3)
 
 
 def test_actor_climbs_an_oracle_critic():
@@ -224,7 +250,8 @@ def test_dsrl_refuses_bad_options_in_one_line(tmp_path, capsys):
     for args, words in ((["--noise-bound", "0"], "--noise-bound: expected a positive number"),
                         (["--group-size", "2"], "--group-size: only with --algo ppo"),
                         (["--buffer-size", "2"], "--buffer-size: expected at least --sac-batch-size"),
-                        (["--target-entropy", "nan"], "--target-entropy: expected a finite number")):
+                        (["--target-entropy", "nan"], "--target-entropy: expected a finite number"),
+                        (["--critics", "1"], "--critics: expected an ensemble of at least 2 members")):
         assert _run(ckpt, tmp_path / "x", "--env-steps", "24", *args) == 2
         assert words in capsys.readouterr().err
 

@@ -27,6 +27,28 @@ class ValueNet(nn.Module):
         return self.net(torch.cat([state, progress[:, None]], -1)).squeeze(-1)
 
 
+class QEnsemble(nn.Module):
+    """`n` independent Q(state, progress, noise or executed actions) -> n × [B], LayerNorm after every
+    hidden layer. With n = 2 it is a twin Q; larger ensembles serve REDQ-style targets (`subset_min`)."""
+
+    def __init__(self, state_dim: int, action_numel: int, n: int = 2, hidden: int = 256):
+        super().__init__()
+        self.members = nn.ModuleList(_mlp(state_dim + 1 + action_numel, hidden, 1, True) for _ in range(n))
+
+    def forward(self, state: Tensor, progress: Tensor, actions: Tensor) -> tuple[Tensor, ...]:
+        x = torch.cat([state, progress[:, None], actions.flatten(1)], -1)
+        return tuple(m(x).squeeze(-1) for m in self.members)
+
+
+def subset_min(qs: tuple[Tensor, ...], k: int, generator: torch.Generator) -> Tensor:
+    """The minimum over `k` members of an ensemble's values, drawn without replacement [B]
+    (k = len(qs): the minimum over all; REDQ's pessimistic target with k = 2 of a larger ensemble)."""
+    if k >= len(qs):
+        return torch.stack(qs).min(0).values
+    pick = torch.randperm(len(qs), generator=generator)[:k]
+    return torch.stack([qs[int(i)] for i in pick]).min(0).values
+
+
 class TwinQ(nn.Module):
     """Two independent Q(state, progress, executed actions [B, n, D] or noise [B, H, D]) -> ([B], [B]).
     `norm_every_layer`: LayerNorm after each hidden layer (not only the first), which keeps Q from

@@ -10,7 +10,11 @@ the learner takes noise as its action. Two critics are offered (`critic`):
   noise drawn from the actor and from the prior: noises that decode to the same chunk get the
   same value. Each update decodes two batches.
 
-The actor maximises min Q(s, w) − α·log π(w | s) (log-probs per noise element, α tuned to hold
+Each critic is an ensemble (`critics`, 2 by default): TD targets take the minimum of two members
+drawn at random (REDQ, arXiv 2101.05982; with two members, the twin minimum), and the actor reads
+the ensemble's mean when it has more than two members, the twin minimum otherwise.
+
+The actor maximises that Q(s, w) − α·log π(w | s) (log-probs per noise element, α tuned to hold
 the entropy per element at a target), plus an optional trust region `kl_coef`·KL(π(·|s) ‖ N(0, I))
 that keeps its Gaussian near the noise the decoder was trained on.
 """
@@ -26,6 +30,7 @@ from torch import Tensor
 
 from ..noise_actor import kl_to_prior
 from ..policy import ActionDecoderPolicy
+from .critics import subset_min
 from .sac import ReplayBuffer, Temperature
 
 
@@ -71,9 +76,9 @@ def noise_actor_fn(policy: ActionDecoderPolicy, make_batch: Callable[[Tensor], d
     return act
 
 
-def _critic_step(q, optimizer, pred_target: tuple[tuple[Tensor, Tensor], Tensor], grad_clip: float) -> float:
-    (q1, q2), target = pred_target
-    loss = (q1 - target).square().mean() + (q2 - target).square().mean()
+def _critic_step(q, optimizer, pred_target: tuple[tuple[Tensor, ...], Tensor], grad_clip: float) -> float:
+    preds, target = pred_target
+    loss = sum((p - target).square().mean() for p in preds)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(q.parameters(), grad_clip)
@@ -106,14 +111,16 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
         cont = cfg.gamma * (1 - b["done"].float())
     if cfg.noise_critic == "noise":
         with torch.no_grad():
-            target = b["reward"] + cont * (torch.min(*q_target(s2["state"], b["next_progress"], w2)) - alpha * logp2)
+            target = b["reward"] + cont * (subset_min(q_target(s2["state"], b["next_progress"], w2), 2, generator)
+                                           - alpha * logp2)
         stats["q_loss"] = _critic_step(q, optimizers["q"], (q(s["state"], b["progress"], b["noise"]), target),
                                        cfg.grad_clip)
     else:
         qa, qa_target = critics["q_action"], critics["q_action_target"]
         with torch.no_grad():
             a2 = decode(policy, nxt, w2)[:, :n]
-            target = b["reward"] + cont * (torch.min(*qa_target(s2["state"], b["next_progress"], a2)) - alpha * logp2)
+            target = b["reward"] + cont * (subset_min(qa_target(s2["state"], b["next_progress"], a2), 2, generator)
+                                           - alpha * logp2)
         stats["q_action_loss"] = _critic_step(qa, optimizers["q_action"],
                                               (qa(s["state"], b["progress"], b["actions"]), target), cfg.grad_clip)
         _polyak(qa, qa_target, cfg.tau)
@@ -121,11 +128,12 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
             w = actor.sample(**s, generator=generator)[0]
             half = len(w) // 2
             w[half:] = actor.bounded(torch.randn(w[half:].shape, generator=generator))
-            target = torch.min(*qa(s["state"], b["progress"], decode(policy, now, w)[:, :n]))
+            target = subset_min(qa(s["state"], b["progress"], decode(policy, now, w)[:, :n]), 2, generator)
         stats["q_loss"] = _critic_step(q, optimizers["q"], (q(s["state"], b["progress"], w), target), cfg.grad_clip)
 
     w, logp, mean, log_std = actor.sample(**s, generator=generator)                  # [B, H, D], [B]
-    q_pi = torch.min(*q(s["state"], b["progress"], w))
+    qs = q(s["state"], b["progress"], w)
+    q_pi = subset_min(qs, 2, generator) if len(qs) == 2 else torch.stack(qs).mean(0)   # REDQ: the ensemble's mean
     loss = (alpha * logp - q_pi).mean()
     kl = kl_to_prior(mean, log_std)                                                   # [B]
     if cfg.kl_coef > 0:

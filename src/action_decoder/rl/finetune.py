@@ -36,7 +36,7 @@ from ..run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, existing_run
                        run_dir_lock, save_final, write_checkpoint)
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
-from .critics import TwinQ, ValueNet
+from .critics import QEnsemble, TwinQ, ValueNet
 from .dsrl import dsrl_policy, dsrl_update, noise_actor_fn
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
@@ -154,6 +154,8 @@ class FinetuneConfig:
     """dsrl: sampling steps of the frozen decoder (default: the checkpoint's)."""
     noise_critic: Literal["noise", "action"] = "noise"
     """dsrl: Q on the noise (DSRL-SAC) or on the executed actions with noise aliasing (DSRL-NA)."""
+    critics: int = 2
+    """dsrl: members of each critic ensemble (2: twin Q; more: targets from the minimum of 2 drawn at random)."""
     noise_hidden: int = 256
     """dsrl: width of the noise actor's two hidden layers."""
     noise_bound: float = 2.5
@@ -236,6 +238,8 @@ def _check(cfg: FinetuneConfig) -> None:
             raise ValueError(f"--{name.replace('_', '-')}: expected a finite number, got {getattr(cfg, name)}")
     if not cfg.success_reward > 0:
         raise ValueError(f"--success-reward: expected a positive reward for reaching success, got {cfg.success_reward}")
+    if cfg.critics < 2:
+        raise ValueError(f"--critics: expected an ensemble of at least 2 members, got {cfg.critics}")
     if not SIGMA_RANGE[0] <= cfg.sigma <= SIGMA_RANGE[1]:
         raise ValueError(f"--sigma: expected a noise scale in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}] (actions are "
                          f"normalised to unit scale), got {cfg.sigma}")
@@ -443,15 +447,15 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
     groups += [{"params": sigma_params, "lr": cfg.sigma_lr}] if sigma_params else []
     buffer, critics = None, {}
     if dsrl:
-        critic = TwinQ(state_dim, policy.config.action_chunk_size * policy.config.action_dim,     # Q(s, w)
-                       norm_every_layer=True)
+        critic = QEnsemble(state_dim, policy.config.action_chunk_size * policy.config.action_dim,  # Q(s, w)
+                           cfg.critics)
         critics = {"q": critic, "q_target": make_target(critic)}
         temperature = Temperature(cfg.alpha, DSRL_TARGET_ENTROPY if cfg.target_entropy is None else cfg.target_entropy)
         optimizers = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=cfg.noise_lr),
                       "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
         if cfg.noise_critic == "action":
-            q_action = TwinQ(state_dim, n_exec * policy.config.action_dim, norm_every_layer=True)  # Q_A(s, a)
+            q_action = QEnsemble(state_dim, n_exec * policy.config.action_dim, cfg.critics)        # Q_A(s, a)
             critics.update(q_action=q_action, q_action_target=make_target(q_action))
             optimizers["q_action"] = torch.optim.Adam(q_action.parameters(), lr=cfg.critic_lr)
         buffer = ReplayBuffer(cfg.buffer_size)
