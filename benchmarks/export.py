@@ -119,7 +119,7 @@ def build_case(decoder: str, steps: int, batch: int, tiny: bool, compile_: bool,
     batch_dict = {"state": state}
     calls = {"eager": lambda: policy.predict_action_chunk(batch_dict, noise=noise)}
     want = calls["eager"]()                                                  # [B, H, D]
-    timings, err = {}, {}
+    timings, err, failed = {}, {}, {}
     if not cuda:
         from action_decoder.runtime import OnnxPolicy
 
@@ -135,22 +135,30 @@ def build_case(decoder: str, steps: int, batch: int, tiny: bool, compile_: bool,
         from action_decoder.compiled import compile_sampler
 
         for name, mode in (("compiled", None), ("inductor", "default"))[:2 if cuda else 1]:
-            fn = compile_sampler(policy, mode=mode)
             start = time.perf_counter()
-            got = fn(batch_dict, noise)
-            for _ in range(2):           # CUDA graphs record on the second call, replay from the third
+            try:
+                fn = compile_sampler(policy, mode=mode)
                 got = fn(batch_dict, noise)
+                for _ in range(2):           # CUDA graphs record on the second call, replay from the third
+                    got = fn(batch_dict, noise)
+            except Exception as e:           # one path of one case: the others are still measured
+                if not cuda:
+                    raise
+                failed[name] = f"{type(e).__name__}: {str(e).splitlines()[0][:160] if str(e) else ''}"
+                log(f"  {decoder} K={steps} B={batch}: {name} failed ({failed[name]})")
+                continue
             err[name] = float((got - want).abs().max())
             Clock(device).sync()
             timings[f"{name}_compile_s"] = time.perf_counter() - start
             calls[name] = (lambda f: lambda: f(batch_dict, noise))(fn)
-        timings["compile_s"] = timings.pop("compiled_compile_s")
+        if "compiled_compile_s" in timings:
+            timings["compile_s"] = timings.pop("compiled_compile_s")
     log(f"  {decoder} K={steps} B={batch}: "
         + ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in timings.items())
         + f", max |diff| {err}")
     mm_timer, mm_flops = matmul_timer(policy, batch, Clock(device))
     return {"calls": calls, "flops_call": network_flops(policy, batch), "mm_timer": mm_timer, "mm_flops": mm_flops,
-            "err": err, **timings}
+            "err": err, **timings, **({"failed": failed} if failed else {})}
 
 
 def measure(cases: dict, reps: int, warmup: int, log, device: str = "cpu") -> dict:
@@ -185,7 +193,7 @@ def measure(cases: dict, reps: int, warmup: int, log, device: str = "cpu") -> di
                      "limit_ms": limit_ms, "gflops_call": case["flops_call"] / 1e9, "peak_gflops": peak / 1e9,
                      "times_limit": {p: ms[p] / limit_ms for p in paths}, "max_abs_diff": case["err"],
                      "export_s": case.get("export_s"), "compile_s": case.get("compile_s"),
-                     **({"inductor_compile_s": case["inductor_compile_s"]} if "inductor_compile_s" in case else {})})
+                     **{k: case[k] for k in ("inductor_compile_s", "failed") if k in case}})
     return rows
 
 
@@ -258,6 +266,8 @@ def render_gpu(result: dict) -> str:
                     f"{r['peak_gflops']:.0f} | {c('compile_s')} | {c('inductor_compile_s')} | "
                     f"{max(r['max_abs_diff'].values(), default=float('nan')):.1e} |")
     skipped = result.get("skipped") or []
+    failed = [f"{LABEL[r['decoder']]} K={r['steps']} B={r['batch']} {p}: {why}"
+              for r in rows for p, why in r.get("failed", {}).items()]
     return "\n".join([
         GPU_BEGIN,
         "## On a GPU",
@@ -273,8 +283,8 @@ def render_gpu(result: dict) -> str:
         "synchronize (`benchmarks/timing.Clock`), paired rounds and ratios as above. The **limit** is K × the "
         "FLOPs of one network call ÷ the rate the GPU reaches on the network's largest matmul at that batch "
         "(float32, as the policy runs: it has no dtype option), timed as 200 matmuls in one CUDA graph, so "
-        "that launch gaps do not count; at these sizes one matmul is a few microseconds of a kernel far "
-        "below the GPU's peak, so the limit is that of kernels at this shape, not of the chip.",
+        "that launch gaps do not count: it is the limit of this GPU's kernels at the network's shapes (the "
+        "matmul rate column), not of the chip's peak rate.",
         "",
         "### Latency per chunk (GPU)",
         "",
@@ -286,7 +296,8 @@ def render_gpu(result: dict) -> str:
         "compile s (inductor) | max abs diff to eager |",
         "|---|---|---|---|---|---|---|---|",
         "\n".join(cost),
-        *([""] + [f"Not built within --build-budget-s: {', '.join(skipped)}."] if skipped else []),
+        *(["", f"Not built: {'; '.join(skipped)}."] if skipped else []),
+        *(["", f"Failed to compile (—): {'; '.join(failed)}."] if failed else []),
         GPU_END,
     ])
 
@@ -350,13 +361,21 @@ def main(argv: Optional[list] = None) -> int:
         for decoder, steps in cases_arg:
             for batch in batches:
                 if args.build_budget_s is not None and time.perf_counter() - start > args.build_budget_s:
-                    skipped.append(f"{decoder}:{steps} B={batch}")
-                    log(f"  {decoder} K={steps} B={batch}: skipped (--build-budget-s {args.build_budget_s:g})")
+                    skipped.append(f"{decoder}:{steps} B={batch} (past --build-budget-s {args.build_budget_s:g})")
+                    log(f"  skipped {skipped[-1]}")
                     continue
-                cases[(decoder, steps, batch)] = build_case(decoder, steps, batch, args.tiny, not args.no_compile,
-                                                            Path(tmp), log, args.device)
+                try:
+                    cases[(decoder, steps, batch)] = build_case(decoder, steps, batch, args.tiny,
+                                                                not args.no_compile, Path(tmp), log, args.device)
+                except Exception as e:     # on a GPU one broken case (a missing diffusers) spares the others
+                    if not cuda:
+                        raise
+                    skipped.append(f"{decoder}:{steps} B={batch} ({type(e).__name__}: {str(e)[:160]})")
+                    log(f"  skipped {skipped[-1]}")
         log(f"  built {len(cases)} cases in {time.perf_counter() - start:.0f} s")
         rows = measure(cases, args.rounds, args.warmup, log, args.device)
+    order = {(d, k): i for i, (d, k) in enumerate(CASES)}
+    rows.sort(key=lambda r: (order.get((r["decoder"], r["steps"]), len(order)), r["steps"], r["batch"]))
     command = " ".join(sys.argv[1:] if argv is None else argv)
     machine = {"date": date.today().isoformat(), "torch": torch.__version__, "python": platform.python_version(),
                "rounds": args.rounds, "warmup": args.warmup, "tiny": args.tiny, "device": args.device}

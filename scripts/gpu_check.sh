@@ -3,7 +3,7 @@
 #   (1) python -m benchmarks export --device cuda: eager, CUDA graphs and inductor per chunk
 #       -> $OUT/export/export_gpu.json and the GPU section of $OUT/export/export.md
 #   (2) the speed suite's sampler-overhead section on CUDA -> $OUT/suite/ (README.md, results.json)
-#   (3) trained and guided RTC chunk against a plain chunk, B = 1 -> $OUT/rtc_latency_gpu.json
+#   (3) trained and guided RTC chunk against a plain chunk, B = 1 -> $OUT/rtc_latency_cuda.json
 # Each step runs under its own `timeout`; a failed or timed-out step does not stop the next.
 #
 #   PYTHONPATH=$PWD/src:$PWD bash scripts/gpu_check.sh          # on the GPU machine
@@ -24,7 +24,8 @@ fi
 mkdir -p "$OUT"
 
 if [ "$DEVICE" = cuda ]; then
-    EXPORT_ARGS=(--rounds "${ROUNDS:-20}" --warmup 3 --build-budget-s 80)
+    EXPORT_ARGS=(--cases mean_flow:1,flow_matching:10,DDPM:10,mean_flow:2,flow_matching:1 --batches 1,32
+                 --rounds "${ROUNDS:-20}" --warmup 3 --build-budget-s 70)   # cut last: the least telling cases
     SUITE_ARGS=(--quick)
     RTC_ARGS=(--rounds 20)
     T_EXPORT=170 T_SUITE=60 T_RTC=45
@@ -60,7 +61,7 @@ step() {                                  # step NAME TIMEOUT_S CMD...
 step export "$T_EXPORT" python3 -m benchmarks export --device "$DEVICE" --out "$OUT/export" "${EXPORT_ARGS[@]}"
 step suite_sampling "$T_SUITE" python3 -m benchmarks --device "$DEVICE" --sections sampling --no-plot \
     --out "$OUT/suite" "${SUITE_ARGS[@]}"
-step rtc_latency "$T_RTC" python3 -m benchmarks rtc-latency --device "$DEVICE" --out "$OUT/rtc_latency_gpu.json" \
+step rtc_latency "$T_RTC" python3 -m benchmarks rtc-latency --device "$DEVICE" --out "$OUT/rtc_latency_$DEVICE.json" \
     "${RTC_ARGS[@]}"
 echo "== summary ($OUT)"
 cat "$SUMMARY"

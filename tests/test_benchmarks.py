@@ -615,8 +615,10 @@ def test_export_benchmark_gpu_section_sits_beside_the_cpu_one(tmp_path):
     machine = {"date": "2026-11-27 14:00 UTC", "machine": "test GPU", "torch": torch.__version__, "cuda": "13.0",
                "python": "3.12", "rounds": 1, "warmup": 0, "device": "cuda", "command": "python -m benchmarks export"}
     export.write_page({"machine": machine, "rows": rows, "skipped": ["DDPM:10 B=32"]}, out / "export.md")
+    rows[0]["failed"] = {"inductor": "RuntimeError: no kernel"}
     export.write_page({"machine": machine, "rows": rows}, out / "export.md")        # replaces its own section
     text = (out / "export.md").read_text()
+    assert "Failed to compile (—): Flow matching K=2 B=3 inductor: RuntimeError: no kernel." in text
     assert text.count(export.GPU_BEGIN) == 1 and text.count(export.BEGIN) == 1
     assert text.index(export.END) < text.index(export.GPU_BEGIN)
     gpu = text.split(export.GPU_BEGIN)[1]
