@@ -3,6 +3,7 @@ python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)
 python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchmark, benchmarks/multimodal.py)
 python -m benchmarks cameras [...]   (image- against state-conditioned policies, benchmarks/cameras.py)
 python -m benchmarks export [...]   (eager, compiled and onnxruntime latency per chunk, benchmarks/export.py)
+python -m benchmarks rtc-latency [...]   (trained and guided RTC chunk against a plain chunk, benchmarks/rtc_latency.py)
 """
 
 from __future__ import annotations
@@ -31,6 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         from .export import main as export_main
 
         return export_main(argv[1:])
+    if argv[:1] == ["rtc-latency"]:
+        from .rtc_latency import main as rtc_latency_main
+
+        return rtc_latency_main(argv[1:])
     if argv[:1] == ["cameras"]:
         from .cameras import main as cameras_main
 

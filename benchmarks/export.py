@@ -2,6 +2,7 @@
 
     python -m benchmarks export                    # the page docs/benchmarks/export.md and export.json
     python -m benchmarks export --tiny --no-compile --out outputs/export-smoke   # smoke test
+    python -m benchmarks export --device cuda --out outputs/export-gpu   # export_gpu.json, a GPU section of export.md
 
 For each decoder and K (MeanFlow K = 1 and 2, flow matching K = 1 and 10, DDPM K = 10) and each batch
 size (1 and 32) on the default Action Expert (hidden 128, 4 layers, chunk 16 × 4, 39-d state), it
@@ -12,6 +13,12 @@ order alternated and the cases rotated (`timing.rounds`), each timer repeating i
 ~20 ms; ratios to eager are medians of per-round ratios. The arithmetic limit is K × the FLOPs of one network call (`torch.utils.flop_counter`) ÷ the
 rate this core reaches on the network's largest matmul ([B·N, hidden] @ [hidden, intermediate]),
 itself the median over the rounds.
+
+With `--device cuda` the policy runs on the GPU and each case is timed three ways: eager PyTorch,
+`compile_sampler` with its CUDA default (mode "reduce-overhead": CUDA graphs, one replay per chunk) and
+torch.compile's default mode (inductor kernels, launched one by one); onnxruntime is left out (the
+CPU page has it). Timers are CUDA events (`timing.Clock`), and the matmul rate is that of the GPU's
+kernels run back to back: a CUDA graph of repeated matmuls, so that no launch gap counts.
 """
 
 from __future__ import annotations
@@ -29,8 +36,10 @@ from typing import Optional
 
 CASES = (("mean_flow", 1), ("mean_flow", 2), ("flow_matching", 1), ("flow_matching", 10), ("DDPM", 10))
 BATCHES = (1, 32)
-PATHS = ("eager", "compiled", "ort1", "ort2")
+PATHS = ("eager", "compiled", "inductor", "ort1", "ort2")      # inductor: torch.compile's default mode (CUDA)
 BEGIN, END = "<!-- BEGIN GENERATED (python -m benchmarks export) -->", "<!-- END GENERATED -->"
+GPU_BEGIN = "<!-- BEGIN GENERATED (python -m benchmarks export --device cuda) -->"
+GPU_END = "<!-- END GENERATED (GPU) -->"
 
 
 def network_flops(policy, batch: int) -> int:
@@ -39,91 +48,126 @@ def network_flops(policy, batch: int) -> int:
     from torch.utils.flop_counter import FlopCounterMode
 
     cfg = policy.config
-    x = torch.zeros(batch, cfg.action_chunk_size, cfg.action_dim)
-    t = torch.zeros(batch)
+    device = next(policy.parameters()).device
+    x = torch.zeros(batch, cfg.action_chunk_size, cfg.action_dim, device=device)
+    t = torch.zeros(batch, device=device)
     with torch.no_grad(), FlopCounterMode(display=False) as counter:
-        policy.model(x, t, t, torch.zeros(batch, cfg.state_input_dim))
+        policy.model(x, t, t, torch.zeros(batch, cfg.state_input_dim, device=device))
     return int(counter.get_total_flops())
 
 
-def matmul_timer(policy, batch: int):
-    """A timer of the network's largest matmul at this batch, and its FLOPs."""
+def matmul_timer(policy, batch: int, clock=None):
+    """A timer (seconds per matmul) of the network's largest matmul at this batch, in the policy's
+    dtype and on its device, and its FLOPs. On CUDA the matmuls replay as one CUDA graph."""
     import torch
 
     from action_decoder.expert.action_expert import default_intermediate_size
+    from benchmarks.timing import Clock
 
     cfg = policy.config
+    weight = next(policy.parameters())
+    kw = {"device": weight.device, "dtype": weight.dtype}
+    clock = clock or Clock(weight.device)
     rows = batch * (4 + cfg.action_chunk_size)
     inter = cfg.intermediate_size or default_intermediate_size(cfg.hidden_size)
-    a, b = torch.randn(rows, cfg.hidden_size), torch.randn(cfg.hidden_size, inter)
-    out = torch.empty(rows, inter)
+    a, b = torch.randn(rows, cfg.hidden_size, **kw), torch.randn(cfg.hidden_size, inter, **kw)
+    out = torch.empty(rows, inter, **kw)
+    flops = 2 * rows * cfg.hidden_size * inter
+    if clock.cuda:
+        inner = 200
+        graph = torch.cuda.CUDAGraph()
+        stream = torch.cuda.Stream()
+        stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(stream):              # warm-up (cuBLAS handles, workspaces) off the capture
+            for _ in range(3):
+                torch.mm(a, b, out=out)
+        torch.cuda.current_stream().wait_stream(stream)
+        with torch.cuda.graph(graph):
+            for _ in range(inner):
+                torch.mm(a, b, out=out)
+        return (lambda: clock(graph.replay) / inner), flops
     inner = max(1, int(2e5 // (rows * cfg.hidden_size * inter / 1e3)))
-
-    def timer() -> float:
-        start = time.perf_counter()
-        for _ in range(inner):
-            torch.mm(a, b, out=out)
-        return (time.perf_counter() - start) / inner
-
-    return timer, 2 * rows * cfg.hidden_size * inter
+    return _timer(lambda: torch.mm(a, b, out=out), inner, clock), flops
 
 
-def _timer(fn, inner: int):
-    def timer() -> float:
-        start = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        return (time.perf_counter() - start) / inner
-    return timer
+def _timer(fn, inner: int, clock=None):
+    """A timer: seconds per call of `fn` over `inner` back-to-back calls (`timing.Clock`; CPU by default)."""
+    from benchmarks.timing import Clock
+
+    clock = clock or Clock("cpu")
+    return lambda: clock(fn, inner)
 
 
-def build_case(decoder: str, steps: int, batch: int, tiny: bool, compile_: bool, workdir: Path, log) -> dict:
-    """The four callables of one (decoder, K, B) and what the limit needs."""
+def build_case(decoder: str, steps: int, batch: int, tiny: bool, compile_: bool, workdir: Path, log,
+               device: str = "cpu") -> dict:
+    """The callables of one (decoder, K, B) and what the limit needs. CPU: eager, compiled (inductor's
+    default), onnxruntime with 1 and 2 threads. CUDA: eager, compiled (compile_sampler's CUDA default,
+    CUDA graphs) and inductor (torch.compile's default mode)."""
     import torch
 
     from action_decoder import ActionDecoderPolicy, DecoderConfig
-    from action_decoder.runtime import OnnxPolicy
+    from benchmarks.timing import Clock
 
+    cuda = torch.device(device).type == "cuda"
     size = {"hidden_size": 32, "num_hidden_layers": 1} if tiny else {}
     torch.manual_seed(0)
-    policy = ActionDecoderPolicy(DecoderConfig(decoder_type=decoder, num_inference_timesteps=steps, **size)).eval()
+    policy = ActionDecoderPolicy(DecoderConfig(decoder_type=decoder, num_inference_timesteps=steps, **size))
+    policy = policy.to(device).eval()
     cfg = policy.config
-    state = torch.randn(batch, cfg.state_dim)
-    noise = torch.randn(batch, cfg.action_chunk_size, cfg.action_dim)
+    state = torch.randn(batch, cfg.state_dim).to(device)                     # [B, S]
+    noise = torch.randn(batch, cfg.action_chunk_size, cfg.action_dim).to(device)   # [B, H, D]
     batch_dict = {"state": state}
     calls = {"eager": lambda: policy.predict_action_chunk(batch_dict, noise=noise)}
-    timings = {}
-    start = time.perf_counter()
-    path = policy.export_onnx(workdir / f"{decoder}_k{steps}_b{batch}.onnx", batch_size=batch)
-    timings["export_s"] = time.perf_counter() - start
-    s_np, n_np = state.numpy(), noise.numpy()
-    want = calls["eager"]()
-    for threads in (1, 2):
-        runner = OnnxPolicy(path, threads=threads)
-        calls[f"ort{threads}"] = (lambda r: lambda: r.predict_action_chunk(s_np, n_np))(runner)
-    err = {"ort": float(abs(torch.from_numpy(calls["ort1"]()) - want).max())}
+    want = calls["eager"]()                                                  # [B, H, D]
+    timings, err, failed = {}, {}, {}
+    if not cuda:
+        from action_decoder.runtime import OnnxPolicy
+
+        start = time.perf_counter()
+        path = policy.export_onnx(workdir / f"{decoder}_k{steps}_b{batch}.onnx", batch_size=batch)
+        timings["export_s"] = time.perf_counter() - start
+        s_np, n_np = state.numpy(), noise.numpy()
+        for threads in (1, 2):
+            runner = OnnxPolicy(path, threads=threads)
+            calls[f"ort{threads}"] = (lambda r: lambda: r.predict_action_chunk(s_np, n_np))(runner)
+        err["ort"] = float(abs(torch.from_numpy(calls["ort1"]()) - want).max())
     if compile_:
         from action_decoder.compiled import compile_sampler
 
-        fn = compile_sampler(policy)
-        start = time.perf_counter()
-        got = fn(batch_dict, noise)
-        timings["compile_s"] = time.perf_counter() - start
-        err["compiled"] = float((got - want).abs().max())
-        calls["compiled"] = lambda: fn(batch_dict, noise)
-    log(f"  {decoder} K={steps} B={batch}: export {timings['export_s']:.1f} s"
-        + (f", compile {timings['compile_s']:.1f} s" if compile_ else "") + f", max |diff| {err}")
-    mm_timer, mm_flops = matmul_timer(policy, batch)
+        for name, mode in (("compiled", None), ("inductor", "default"))[:2 if cuda else 1]:
+            start = time.perf_counter()
+            try:
+                fn = compile_sampler(policy, mode=mode)
+                got = fn(batch_dict, noise)
+                for _ in range(2):           # CUDA graphs record on the second call, replay from the third
+                    got = fn(batch_dict, noise)
+            except Exception as e:           # one path of one case: the others are still measured
+                if not cuda:
+                    raise
+                failed[name] = f"{type(e).__name__}: {str(e).splitlines()[0][:160] if str(e) else ''}"
+                log(f"  {decoder} K={steps} B={batch}: {name} failed ({failed[name]})")
+                continue
+            err[name] = float((got - want).abs().max())
+            Clock(device).sync()
+            timings[f"{name}_compile_s"] = time.perf_counter() - start
+            calls[name] = (lambda f: lambda: f(batch_dict, noise))(fn)
+        if "compiled_compile_s" in timings:
+            timings["compile_s"] = timings.pop("compiled_compile_s")
+    log(f"  {decoder} K={steps} B={batch}: "
+        + ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in timings.items())
+        + f", max |diff| {err}")
+    mm_timer, mm_flops = matmul_timer(policy, batch, Clock(device))
     return {"calls": calls, "flops_call": network_flops(policy, batch), "mm_timer": mm_timer, "mm_flops": mm_flops,
-            "err": err, **timings}
+            "err": err, **timings, **({"failed": failed} if failed else {})}
 
 
-def measure(cases: dict, reps: int, warmup: int, log) -> dict:
+def measure(cases: dict, reps: int, warmup: int, log, device: str = "cpu") -> dict:
     """Median ms of every path and the paired ratios to eager."""
     import statistics
 
     from benchmarks.timing import Clock, rounds
 
+    clock = Clock(device)
     timers = {}
     for key, case in cases.items():
         paths = [p for p in PATHS if p in case["calls"]]
@@ -131,11 +175,11 @@ def measure(cases: dict, reps: int, warmup: int, log) -> dict:
         timers[key] = []
         for p in paths:                 # each timer runs its own call for >= ~20 ms: a preemption weighs alike
             call = case["calls"][p]
-            est = min(_timer(call, 1)() for _ in range(3))
-            timers[key].append(_timer(call, max(1, int(0.02 / max(est, 1e-5)))))
+            est = min(_timer(call, 1, clock)() for _ in range(3))
+            timers[key].append(_timer(call, max(1, int(0.02 / max(est, 1e-5))), clock))
         timers[key].append(case["mm_timer"])
     log(f"  {reps} rounds (+{warmup} warm-up) of {len(cases)} cases")
-    samples = rounds(Clock("cpu"), timers, reps, warmup)
+    samples = rounds(clock, timers, reps, warmup)
     rows = []
     for key, case in cases.items():
         decoder, steps, batch = key
@@ -148,7 +192,8 @@ def measure(cases: dict, reps: int, warmup: int, log) -> dict:
         rows.append({"decoder": decoder, "steps": steps, "batch": batch, "ms": ms, "ratio_to_eager": ratio,
                      "limit_ms": limit_ms, "gflops_call": case["flops_call"] / 1e9, "peak_gflops": peak / 1e9,
                      "times_limit": {p: ms[p] / limit_ms for p in paths}, "max_abs_diff": case["err"],
-                     "export_s": case["export_s"], "compile_s": case.get("compile_s")})
+                     "export_s": case.get("export_s"), "compile_s": case.get("compile_s"),
+                     **{k: case[k] for k in ("inductor_compile_s", "failed") if k in case}})
     return rows
 
 
@@ -197,15 +242,77 @@ def render(result: dict) -> str:
     ])
 
 
+def gpu_table(rows: list) -> str:
+    head = ("| decoder | K | B | eager ms | CUDA graphs ms | inductor ms | CUDA graphs ÷ eager | inductor ÷ eager | "
+            "limit ms | eager ÷ limit | CUDA graphs ÷ limit |")
+    lines = [head, "|---" * (head.count("|") - 1) + "|"]
+    for r in rows:
+        ms, q, x = r["ms"], r["ratio_to_eager"], r["times_limit"]
+        f = lambda d, k, fmt: fmt.format(d[k]) if k in d else "—"      # noqa: E731
+        lines.append(f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {ms['eager']:.3f} | "
+                     f"{f(ms, 'compiled', '{:.3f}')} | {f(ms, 'inductor', '{:.3f}')} | {f(q, 'compiled', '{:.2f}×')} | "
+                     f"{f(q, 'inductor', '{:.2f}×')} | {r['limit_ms']:.4f} | {x['eager']:.0f}× | "
+                     f"{f(x, 'compiled', '{:.1f}×')} |")
+    return "\n".join(lines)
+
+
+def render_gpu(result: dict) -> str:
+    m = result["machine"]
+    rows = result["rows"]
+    cost = []
+    for r in rows:
+        c = lambda k: "—" if r.get(k) is None else f"{r[k]:.1f}"      # noqa: E731
+        cost.append(f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {r['gflops_call'] * 1e3:.2f} | "
+                    f"{r['peak_gflops']:.0f} | {c('compile_s')} | {c('inductor_compile_s')} | "
+                    f"{max(r['max_abs_diff'].values(), default=float('nan')):.1e} |")
+    skipped = result.get("skipped") or []
+    failed = [f"{LABEL[r['decoder']]} K={r['steps']} B={r['batch']} {p}: {why}"
+              for r in rows for p, why in r.get("failed", {}).items()]
+    return "\n".join([
+        GPU_BEGIN,
+        "## On a GPU",
+        "",
+        f"Measured {m['date']} on {m['machine']} (torch {m['torch']}, CUDA {m.get('cuda')}, Python {m['python']}, "
+        f"float32 weights, float32 matmul precision \"{m.get('float32_matmul_precision')}\", {m['rounds']} rounds + "
+        f"{m['warmup']} warm-up), command `{m['command']}`.",
+        "",
+        "The same cases on the GPU, three ways: eager PyTorch; `compile_sampler` with its CUDA default, mode "
+        "\"reduce-overhead\" (the chunk's kernels recorded once as a CUDA graph and replayed with one launch); "
+        "and torch.compile's default mode (the same inductor kernels, launched one by one from Python). "
+        "onnxruntime is not timed here (the CPU table above has it). Timers are CUDA events after a "
+        "synchronize (`benchmarks/timing.Clock`), paired rounds and ratios as above. The **limit** is K × the "
+        "FLOPs of one network call ÷ the rate the GPU reaches on the network's largest matmul at that batch "
+        "(float32, as the policy runs: it has no dtype option), timed as 200 matmuls in one CUDA graph, so "
+        "that launch gaps do not count: it is the limit of this GPU's kernels at the network's shapes (the "
+        "matmul rate column), not of the chip's peak rate.",
+        "",
+        "### Latency per chunk (GPU)",
+        "",
+        gpu_table(rows),
+        "",
+        "### What the limit is made of, and the cost of compiling (GPU)",
+        "",
+        "| decoder | K | B | MFLOP per network call | matmul rate GFLOP/s | compile s (CUDA graphs) | "
+        "compile s (inductor) | max abs diff to eager |",
+        "|---|---|---|---|---|---|---|---|",
+        "\n".join(cost),
+        *(["", f"Not built: {'; '.join(skipped)}."] if skipped else []),
+        *(["", f"Failed to compile (—): {'; '.join(failed)}."] if failed else []),
+        GPU_END,
+    ])
+
+
 def write_page(result: dict, page: Path) -> None:
-    body = render(result)
-    if page.is_file() and BEGIN in page.read_text():
-        text = page.read_text()
-        head, rest = text.split(BEGIN, 1)
-        tail = rest.split(END, 1)[1] if END in rest else ""
+    """Replace this device's generated section of `page` (or append it; a new page gets a title)."""
+    gpu = result["machine"].get("device", "cpu") == "cuda"
+    body, begin, end = (render_gpu(result), GPU_BEGIN, GPU_END) if gpu else (render(result), BEGIN, END)
+    text = page.read_text() if page.is_file() else "# Inference at the hardware's limit\n"
+    if begin in text:
+        head, rest = text.split(begin, 1)
+        tail = rest.split(end, 1)[1] if end in rest else ""
         page.write_text(head + body + tail)
     else:
-        page.write_text("# Inference at the hardware's limit\n\n" + body + "\n")
+        page.write_text(text.rstrip("\n") + "\n\n" + body + "\n")
 
 
 def main(argv: Optional[list] = None) -> int:
@@ -216,33 +323,77 @@ def main(argv: Optional[list] = None) -> int:
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)))
     parser.add_argument("--tiny", action="store_true", help="tiny network (smoke test)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile path")
-    parser.add_argument("--out", default="docs/benchmarks", help="directory of export.md and export.json")
-    parser.add_argument("--machine", default="2-core CPU VM, one torch thread, shared with other jobs")
+    parser.add_argument("--out", default="docs/benchmarks",
+                        help="directory of export.md and export.json (export_gpu.json with --device cuda)")
+    parser.add_argument("--machine", default=None,
+                        help="machine named on the page (default: '2-core CPU VM, ...' on cpu, the GPU's name on cuda)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                        help="cpu (eager, compiled, onnxruntime) or cuda (eager, CUDA graphs, inductor); default cpu")
+    parser.add_argument("--build-budget-s", type=float, default=None,
+                        help="stop building further cases once building took this many seconds (default: no limit)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    import onnxruntime
+    import functools
+
     import torch
 
+    log = functools.partial(print, flush=True)
+    cuda = args.device == "cuda"
+    if cuda and not torch.cuda.is_available():
+        parser.error(f"--device: cuda needs a CUDA build of torch and a GPU; torch {torch.__version__} sees none")
     torch.set_num_threads(1)
-    cases_arg = [(c.split(":")[0], int(c.split(":")[1])) for c in args.cases.split(",") if c]
-    batches = [int(b) for b in args.batches.split(",") if b]
+    try:
+        cases_arg = [(c.split(":")[0], int(c.split(":")[1])) for c in args.cases.split(",") if c]
+        batches = [int(b) for b in args.batches.split(",") if b]
+    except (IndexError, ValueError):
+        parser.error(f"--cases/--batches: expected decoder:K pairs and integers, got {args.cases!r} / {args.batches!r}")
+    if not args.no_compile:              # one compiled ChunkSampler.forward per case and mode
+        import torch._dynamo
+
+        for name in ("recompile_limit", "cache_size_limit"):
+            if hasattr(torch._dynamo.config, name):
+                setattr(torch._dynamo.config, name, max(getattr(torch._dynamo.config, name), 4 * len(cases_arg)
+                                                        * len(batches) + 8))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cases = {}
+    cases, skipped = {}, []
+    start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_export_") as tmp:
         for decoder, steps in cases_arg:
             for batch in batches:
-                cases[(decoder, steps, batch)] = build_case(decoder, steps, batch, args.tiny, not args.no_compile,
-                                                            Path(tmp), print)
-        rows = measure(cases, args.rounds, args.warmup, print)
-    result = {"machine": {"date": date.today().isoformat(), "machine": args.machine, "torch": torch.__version__,
-                          "onnxruntime": onnxruntime.__version__, "python": platform.python_version(),
-                          "rounds": args.rounds, "warmup": args.warmup, "tiny": args.tiny,
-                          "command": "OMP_NUM_THREADS=1 python -m benchmarks export " + " ".join(
-                              sys.argv[1:] if argv is None else argv)},
-              "rows": rows}
-    (out / "export.json").write_text(json.dumps(result, indent=1))
+                if args.build_budget_s is not None and time.perf_counter() - start > args.build_budget_s:
+                    skipped.append(f"{decoder}:{steps} B={batch} (past --build-budget-s {args.build_budget_s:g})")
+                    log(f"  skipped {skipped[-1]}")
+                    continue
+                try:
+                    cases[(decoder, steps, batch)] = build_case(decoder, steps, batch, args.tiny,
+                                                                not args.no_compile, Path(tmp), log, args.device)
+                except Exception as e:     # on a GPU one broken case (a missing diffusers) spares the others
+                    if not cuda:
+                        raise
+                    skipped.append(f"{decoder}:{steps} B={batch} ({type(e).__name__}: {str(e)[:160]})")
+                    log(f"  skipped {skipped[-1]}")
+        log(f"  built {len(cases)} cases in {time.perf_counter() - start:.0f} s")
+        rows = measure(cases, args.rounds, args.warmup, log, args.device)
+    order = {(d, k): i for i, (d, k) in enumerate(CASES)}
+    rows.sort(key=lambda r: (order.get((r["decoder"], r["steps"]), len(order)), r["steps"], r["batch"]))
+    command = " ".join(sys.argv[1:] if argv is None else argv)
+    machine = {"date": date.today().isoformat(), "torch": torch.__version__, "python": platform.python_version(),
+               "rounds": args.rounds, "warmup": args.warmup, "tiny": args.tiny, "device": args.device}
+    if cuda:
+        machine.update(machine=args.machine or f"{torch.cuda.get_device_name()} ({os.cpu_count()}-CPU host, one torch "
+                       "thread)", cuda=torch.version.cuda, float32_matmul_precision=torch.get_float32_matmul_precision(),
+                       date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                       command="python -m benchmarks export " + command)
+    else:
+        import onnxruntime
+
+        machine.update(machine=args.machine or "2-core CPU VM, one torch thread, shared with other jobs",
+                       onnxruntime=onnxruntime.__version__, command="OMP_NUM_THREADS=1 python -m benchmarks export "
+                       + command)
+    result = {"machine": machine, "rows": rows, **({"skipped": skipped} if skipped else {})}
+    (out / ("export_gpu.json" if cuda else "export.json")).write_text(json.dumps(result, indent=1))
     write_page(result, out / "export.md")
-    print(table(rows), flush=True)
+    log(gpu_table(rows) if cuda else table(rows))
     return 0
 
 

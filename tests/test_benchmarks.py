@@ -593,3 +593,57 @@ def test_export_benchmark_writes_its_page_and_json(tmp_path):
     assert [(r["decoder"], r["steps"], r["batch"]) for r in rows] == [("mean_flow", 1, 1)]
     assert rows[0]["max_abs_diff"]["ort"] <= 1e-4 and rows[0]["limit_ms"] > 0
     assert "| MeanFlow | 1 | 1 |" in (out / "export.md").read_text()
+
+
+def test_export_benchmark_gpu_section_sits_beside_the_cpu_one(tmp_path):
+    """The CUDA run's rows (eager, CUDA graphs, inductor) render into their own section of export.md."""
+    pytest.importorskip("onnxruntime")
+    import torch
+
+    from benchmarks import export
+
+    out = tmp_path / "bench"
+    assert export.main(["--tiny", "--no-compile", "--rounds", "1", "--warmup", "0", "--cases", "mean_flow:1",
+                        "--batches", "1", "--out", str(out)]) == 0
+    case = export.build_case("flow_matching", 2, 3, True, False, tmp_path, lambda *a, **k: None, "cpu")
+    del case["calls"]["ort1"], case["calls"]["ort2"]         # the paths a CUDA case has, less the compiled ones
+    case["calls"]["compiled"] = case["calls"]["inductor"] = case["calls"]["eager"]
+    case["compile_s"], case["inductor_compile_s"] = 1.0, 2.0
+    rows = export.measure({("flow_matching", 2, 3): case}, 1, 0, lambda *a, **k: None, "cpu")
+    assert set(rows[0]["ms"]) == {"eager", "compiled", "inductor"} and rows[0]["limit_ms"] > 0
+    assert rows[0]["limit_ms"] == pytest.approx(2 * rows[0]["gflops_call"] / rows[0]["peak_gflops"] * 1e3)
+    machine = {"date": "2026-11-27 14:00 UTC", "machine": "test GPU", "torch": torch.__version__, "cuda": "13.0",
+               "python": "3.12", "rounds": 1, "warmup": 0, "device": "cuda", "command": "python -m benchmarks export"}
+    export.write_page({"machine": machine, "rows": rows, "skipped": ["DDPM:10 B=32"]}, out / "export.md")
+    rows[0]["failed"] = {"inductor": "RuntimeError: no kernel"}
+    export.write_page({"machine": machine, "rows": rows}, out / "export.md")        # replaces its own section
+    text = (out / "export.md").read_text()
+    assert "Failed to compile (—): Flow matching K=2 B=3 inductor: RuntimeError: no kernel." in text
+    assert text.count(export.GPU_BEGIN) == 1 and text.count(export.BEGIN) == 1
+    assert text.index(export.END) < text.index(export.GPU_BEGIN)
+    gpu = text.split(export.GPU_BEGIN)[1]
+    assert "| Flow matching | 2 | 3 |" in gpu and "test GPU" in gpu and "Not built" not in gpu
+    assert "| MeanFlow | 1 | 1 |" in text.split(export.GPU_BEGIN)[0]
+
+
+def test_gpu_benchmarks_refuse_cuda_without_a_gpu_in_one_line(capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    from benchmarks import export, rtc_latency
+
+    for main in (export.main, rtc_latency.main):
+        with pytest.raises(SystemExit):
+            main(["--device", "cuda", "--tiny"])
+        assert "--device: cuda needs a CUDA build of torch and a GPU" in capsys.readouterr().err
+
+
+def test_rtc_latency_times_plain_trained_and_guided_chunks(tmp_path):
+    from benchmarks.rtc_latency import main
+
+    out = tmp_path / "rtc.json"
+    assert main(["--tiny", "--settings", "flow_matching:2", "--rounds", "1", "--warmup", "0", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["decoder"], r["steps"], r["delay"]) for r in rows] == [("flow_matching", 2, 4)]
+    assert set(rows[0]["ms"]) == {"plain", "trained", "guided"} and set(rows[0]["ratio_to_plain"]) == {"trained", "guided"}
