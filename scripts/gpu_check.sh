@@ -10,13 +10,14 @@
 #   DEVICE=cpu OUT=/tmp/gpu_check bash scripts/gpu_check.sh     # CPU fallback: tiny sizes, same steps
 #
 # Environment: OUT (default ./outputs/gpu), DEVICE (cuda | cpu, default cuda), ROUNDS (export's rounds).
-# Wheels in ./.whl (e.g. diffusers, needed by the DDPM cases and the suite) are installed into /tmp/site.
+# Wheels in ./.whl (e.g. diffusers, needed by the DDPM cases and the suite) are installed into /tmp/site
+# (SKIP_WHEELS=1: they are installed already and on PYTHONPATH).
 set -u
 OUT=${OUT:-./outputs/gpu}
 DEVICE=${DEVICE:-cuda}
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 export PYTHONPATH="$PWD/src:$PWD${PYTHONPATH:+:$PYTHONPATH}"
-if compgen -G ".whl/*.whl" >/dev/null; then
+if [ -z "${SKIP_WHEELS:-}" ] && compgen -G ".whl/*.whl" >/dev/null; then
     echo "== installing $(ls .whl/*.whl | wc -l) wheel(s) from .whl into /tmp/site"
     python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl \
         && export PYTHONPATH="$PYTHONPATH:/tmp/site"
