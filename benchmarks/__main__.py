@@ -3,6 +3,7 @@ python -m benchmarks rtc [...]   (real-time chunking grid, benchmarks/rtc.py)
 python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchmark, benchmarks/multimodal.py)
 python -m benchmarks cameras [...]   (image- against state-conditioned policies, benchmarks/cameras.py)
 python -m benchmarks export [...]   (eager, compiled and onnxruntime latency per chunk, benchmarks/export.py)
+python -m benchmarks serve [...]   (action-decoder serve with LeRobot's RobotClient: latency, queue; benchmarks/serve.py)
 """
 
 from __future__ import annotations
@@ -31,6 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         from .export import main as export_main
 
         return export_main(argv[1:])
+    if argv[:1] == ["serve"]:
+        from .serve import main as serve_main
+
+        return serve_main(argv[1:])
     if argv[:1] == ["cameras"]:
         from .cameras import main as cameras_main
 

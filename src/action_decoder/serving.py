@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Literal, Optional, Sequence
 
 SERVER_MODULE = "lerobot_policy_action_decoder.serve"
-INSTALL_HINT = ("pip install 'lerobot[async]>=0.4.3' and the plugin (pip install ./lerobot_policy_action_decoder "
-                "from this repository)")
+INSTALL_HINT = ("pip install 'lerobot>=0.4.3' and the plugin with its serve extra "
+                "(pip install './lerobot_policy_action_decoder[serve]' from this repository)")
 
 
 @dataclass
