@@ -10,7 +10,8 @@ the LeRobot-written fixture tests/data/lerobot/v30_toy (6-d state, 3-d action, t
 (flow_matching, 10 Euler steps: "guided"). Each is served (`action-decoder serve`, a subprocess)
 with real-time chunking on and off, and LeRobot's `RobotClient` drives the plugin's simulated
 robot (`--robot.type=action_decoder_sim`) at --fps for --seconds, with `actions_per_chunk` 12,
-`chunk_size_threshold` 0.5 and `aggregate_fn_name` latest_only.
+`chunk_size_threshold` 0.5 and `aggregate_fn_name` latest_only (RTC on and off) or
+weighted_average (the client's default; RTC on).
 
 Server side (its --log-chunks records): compute per chunk (observation → timed actions: the
 checkpoint's pre-processing, sampling, post-processing) and sampling alone, in ms; the delay
@@ -18,7 +19,8 @@ in control steps it estimated and the rows it committed. Client side, at each ch
 (read, not changed: the client's own merge runs): actions still queued, incoming rows already
 executed (dropped by the client), rows merged into queued timesteps and rows appended, and how
 far the new chunk is from the queued actions it merges into (mean |new − queued| over merged
-rows and action dimensions, robot units) — what the client's aggregate function would blend.
+rows and action dimensions, robot units; apart on the rows the server committed and the others)
+— what the client's aggregate function blends.
 """
 
 from __future__ import annotations
@@ -126,21 +128,27 @@ def drive_client(port: int, checkpoint, workdir, actions: int, seconds: float, f
         os.chdir(old)
 
 
-def arrival_stats(arrivals) -> dict:
-    """Queue behaviour at each chunk's arrival (module docstring), as medians and totals."""
-    queued, dropped, merged, appended, gaps = [], [], [], [], []
-    for queue, latest, incoming in arrivals:
-        live = [a for a in incoming if a.get_timestep() > latest]
-        hit = [a for a in live if a.get_timestep() in queue]
-        queued.append(len(queue))
+def arrival_stats(arrivals, records: list) -> dict:
+    """Queue behaviour at each chunk's arrival (module docstring), as medians and means; `records` are
+    the server's, in the same order (one client, one chunk per GetActions). The gap is split into the
+    chunk's committed rows (the server's previous chunk, copied) and the rest."""
+    queued, dropped, merged, appended, committed_gap, free_gap = [], [], [], [], [], []
+    for i, ((queue, latest, incoming), record) in enumerate(zip(arrivals, records)):
+        live = [(j, a) for j, a in enumerate(incoming) if a.get_timestep() > latest]
+        hit = [(j, a) for j, a in live if a.get_timestep() in queue]
+        if i:                                          # the first chunk arrives to an empty queue
+            queued.append(len(queue))
         dropped.append(len(incoming) - len(live))
         merged.append(len(hit))
         appended.append(len(live) - len(hit))
-        gaps += [float((a.get_action() - queue[a.get_timestep()]).abs().mean()) for a in hit]
+        for j, a in hit:
+            gap = float((a.get_action() - queue[a.get_timestep()]).abs().mean())
+            (committed_gap if j < record["committed"] else free_gap).append(gap)
     med = lambda xs: statistics.median(xs) if xs else float("nan")  # noqa: E731
+    mean = lambda xs: statistics.fmean(xs) if xs else float("nan")  # noqa: E731
     return {"chunks_received": len(arrivals), "queued_median": med(queued), "queued_min": min(queued, default=0),
             "dropped_median": med(dropped), "merged_median": med(merged), "appended_median": med(appended),
-            "merged_gap": statistics.fmean(gaps) if gaps else float("nan")}
+            "gap_committed": mean(committed_gap), "gap_free": mean(free_gap)}
 
 
 def server_stats(records: list) -> dict:
@@ -160,8 +168,11 @@ def train_checkpoints(work: Path, steps: int, tiny: bool) -> dict:
 
     arch = dict(hidden_size=32, num_layers=1, num_heads=2, num_kv_heads=1) if tiny else {}
     common = dict(dataset=str(FIXTURE), steps=steps, batch_size=32, eval_episodes=0, progress=False, seed=0, **arch)
-    return {"MF-1": train(TrainConfig(decoder="mean_flow", rtc_max_delay=4, output_dir=str(work / "mf"), **common)),
-            "FM-10": train(TrainConfig(decoder="flow_matching", output_dir=str(work / "fm"), **common))}
+    runs = {"MF-1": dict(decoder="mean_flow", rtc_max_delay=4, output_dir=str(work / "mf")),
+            "FM-10": dict(decoder="flow_matching", output_dir=str(work / "fm"))}
+    # a run already in --out is served again (its final/), not retrained
+    return {name: Path(run["output_dir"]) / "final" if (Path(run["output_dir"]) / "final").is_dir()
+            else train(TrainConfig(**run, **common)) for name, run in runs.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -173,35 +184,38 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=int, default=30, help="the client's control frequency in Hz (default 30)")
     parser.add_argument("--train-steps", type=int, default=200, help="training steps per checkpoint (default 200)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks (smoke run)")
-    parser.add_argument("--out", default=None, help="directory for serve.json (default: a temporary directory)")
+    parser.add_argument("--out", default=None, help="directory of the runs and serve.json (default: a temporary "
+                        "directory); runs already there are served again")
     args = parser.parse_args(argv)
     work = Path(args.out or tempfile.mkdtemp(prefix="bench_serve_"))
     work.mkdir(parents=True, exist_ok=True)
     ckpts = train_checkpoints(work, args.train_steps, args.tiny)
     rows = []
     for name, ckpt in ckpts.items():
-        for rtc in (True, False):
-            log = work / f"{name}_{'rtc' if rtc else 'plain'}.jsonl"
+        for rtc, aggregate in ((True, "latest_only"), (False, "latest_only"), (True, "weighted_average")):
+            log = work / f"{name}_{'rtc' if rtc else 'plain'}_{aggregate}.jsonl"
             log.unlink(missing_ok=True)
             with serve_subprocess(ckpt, log, "--fps", str(args.fps), *([] if rtc else ["--no-rtc"])) as (port, _):
                 robot, arrivals = drive_client(port, ckpt, work, actions=int(args.seconds * args.fps) * 10,
-                                               seconds=args.seconds, fps=args.fps)
+                                               seconds=args.seconds, fps=args.fps, aggregate=aggregate)
             records = [json.loads(line) for line in log.read_text().splitlines()]
-            rows.append({"checkpoint": name, "rtc": rtc, "executed": len(robot.executed), **server_stats(records),
-                         **arrival_stats(arrivals)})
+            rows.append({"checkpoint": name, "rtc": rtc, "aggregate": aggregate, "executed": len(robot.executed),
+                         **server_stats(records), **arrival_stats(arrivals, records)})
             print(json.dumps(rows[-1]), flush=True)
     meta = {"date": date.today().isoformat(), "machine": f"{os.cpu_count()}-core {platform.machine()} CPU, "
             f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}", "python": platform.python_version(),
             "command": "python -m benchmarks serve " + " ".join(argv if argv is not None else sys.argv[1:])}
     (work / "serve.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    print("| checkpoint | RTC | chunks | compute ms (median / p90) | sampling ms | delay (steps) | committed | "
-          "queued at arrival (median / min) | dropped | merged | appended | mean gap at merged rows |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| checkpoint | RTC | client aggregate | chunks | actions executed in {args.seconds:g} s | compute ms "
+          "(median / p90) | sampling ms | delay (steps) | committed | queued at arrival (median / min) | dropped | "
+          "merged | appended | gap, committed rows | gap, other merged rows |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['checkpoint']} | {', '.join(r['rtc_modes']) or 'off'} | {r['chunks_served']} | "
-              f"{r['compute_ms_median']:.1f} / {r['compute_ms_p90']:.1f} | {r['sample_ms_median']:.1f} | "
-              f"{r['delay_median']:g} | {r['committed_median']:g} | {r['queued_median']:g} / {r['queued_min']} | "
-              f"{r['dropped_median']:g} | {r['merged_median']:g} | {r['appended_median']:g} | {r['merged_gap']:.3f} |")
+        print(f"| {r['checkpoint']} | {', '.join(r['rtc_modes']) or 'off'} | {r['aggregate']} | {r['chunks_served']} | "
+              f"{r['executed']} | {r['compute_ms_median']:.1f} / {r['compute_ms_p90']:.1f} | "
+              f"{r['sample_ms_median']:.1f} | {r['delay_median']:g} | {r['committed_median']:g} | "
+              f"{r['queued_median']:g} / {r['queued_min']} | {r['dropped_median']:g} | {r['merged_median']:g} | "
+              f"{r['appended_median']:g} | {r['gap_committed']:.3f} | {r['gap_free']:.3f} |")
     print(f"{meta['date']}, {meta['machine']}, {meta['command']}; results in {work / 'serve.json'}")
     return 0
 

@@ -108,3 +108,44 @@ def test_robot_client_receives_timed_chunks_with_real_time_chunking(checkpoints,
         before = {a.get_timestep(): a.get_action() for a in received[i - 1]}
         for a in received[i][: r["committed"]]:
             assert torch.allclose(a.get_action(), before[a.get_timestep()], atol=1e-6), (i, a.get_timestep())
+
+
+def test_camera_frames_and_task_reach_a_multi_task_camera_policy(tmp_path):
+    """A robot's raw frames [H, W, 3] uint8 and its task string, through the server's observation
+    layout and the checkpoint's own preparation, condition a camera policy (no server needed)."""
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+    from lerobot_policy_action_decoder.serve import check_features, lerobot_observation, load_checkpoint
+
+    cfg = DecoderConfig(decoder_type="mean_flow", state_dim=6, action_dim=3, action_chunk_size=8, n_action_steps=4,
+                        hidden_size=32, num_hidden_layers=1, num_attention_heads=2, num_key_value_heads=1,
+                        normalization_mode="identity", cameras=("observation.images.front",), image_size=32,
+                        context_dim=2, extra={"tasks": ["push the block", "lift the cube"]})
+    ActionDecoderPolicy(cfg).save_pretrained(tmp_path / "cam")
+    served = load_checkpoint(str(tmp_path / "cam"))
+    features = {"observation.state": {"dtype": "float32", "shape": (6,), "names": [f"s{i}" for i in range(6)]},
+                "observation.images.wrist": {"dtype": "image", "shape": (48, 64, 3),
+                                             "names": ["height", "width", "channels"]}}
+    rename = {"observation.images.wrist": "observation.images.front"}
+    check_features(served, features, rename)
+    with pytest.raises(ValueError, match=r"needs camera\(s\) \['observation.images.front'\]"):
+        check_features(served, features, {})
+    frame = torch.randint(0, 256, (48, 64, 3), dtype=torch.uint8).numpy()
+    raw = {**{f"s{i}": 0.1 * i for i in range(6)}, "wrist": frame, "task": "lift the cube"}
+    batch = served.prepare(lerobot_observation(raw, features, rename))
+    assert batch["images"].shape == (1, 1, 3, 32, 32) and batch["context"].tolist() == [[[0.0, 1.0]]]
+    assert torch.equal(batch["state"], torch.tensor([[0.1 * i for i in range(6)]]))
+    chunk = served.core.predict_action_chunk(batch)
+    assert chunk.shape == (1, 8, 3) and torch.isfinite(chunk).all()
+    with pytest.raises(ValueError, match=r"missing camera 'wrist'"):
+        lerobot_observation({f"s{i}": 0.0 for i in range(6)}, features, rename)
+
+
+def test_checkpoints_of_other_policies_are_refused_in_one_line(tmp_path):
+    from lerobot_policy_action_decoder.serve import load_checkpoint
+
+    (tmp_path / "act").mkdir()
+    (tmp_path / "act" / "config.json").write_text(json.dumps({"type": "act"}))
+    with pytest.raises(ValueError, match="policy type 'act'; this server serves 'action_decoder'"):
+        load_checkpoint(str(tmp_path / "act"))
+    with pytest.raises(ValueError, match="has no config.json"):
+        load_checkpoint(str(tmp_path))

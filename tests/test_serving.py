@@ -31,7 +31,7 @@ def test_expected_latency_counts_the_round_trip_the_wait_and_the_slowest_recent_
     assert expected_latency(-0.5, 0.0, [0.9] + [0.01] * 10, window=10) == pytest.approx(0.01)
 
 
-def test_first_chunk_of_a_session_starts_at_the_observation_and_continues_nothing():
+def test_first_chunk_after_connecting_starts_at_the_observation_and_continues_nothing():
     assert plan_chunk(0, None, 0, delay=3, horizon=16) == ChunkPlan(start=0)
     assert plan_chunk(7, None, 0, delay=3, horizon=16) == ChunkPlan(start=7)
 

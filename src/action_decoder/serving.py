@@ -7,7 +7,7 @@ Timesteps follow LeRobot's `RobotClient`: it labels an observation with the time
 action it executed (0 before the first), drops every received action whose timestep it has already
 executed, and merges the rest into its queue by timestep. A chunk computed from an observation
 labelled k therefore starts at k + 1 once the client has executed action k (any chunk of this
-session was sent), and at k for the session's first observation (nothing executed yet).
+connection was sent), and at k for the connection's first observation (nothing executed yet).
 
 Real-time chunking. While the server computes a chunk, the client keeps executing the previous
 chunk: the new chunk's first `delay` rows are those actions (committed), and the policy conditions
@@ -126,7 +126,7 @@ class ChunkPlan:
 
 def plan_chunk(obs_timestep: int, prev_start: Optional[int], prev_sent: int, delay: int, horizon: int) -> ChunkPlan:
     """The `ChunkPlan` of a chunk for the observation labelled `obs_timestep`, after a previous chunk
-    that started at `prev_start` (None: none this session) of which `prev_sent` rows were sent;
+    that started at `prev_start` (None: none since the client connected) of which `prev_sent` rows were sent;
     `delay` is the estimated inference delay in control steps and `horizon` H the chunk length.
 
     The committed rows are capped at H − 1 (one row at least is the new chunk's own) and at the

@@ -197,26 +197,28 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
                              "(train --rtc-max-delay N); this one has rtc_max_delay=0: use auto or guided")
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.stop_event = threading.Event()
-        self.lock = threading.Lock()              # one chunk at a time, and the session state below
+        self.lock = threading.Lock()              # one chunk at a time, and the previous chunk below
+        self.obs_lock = threading.Lock()          # the observation slot: never held while a chunk is computed
         self.slot: queue.Queue = queue.Queue(maxsize=1)
         self.compute_s: deque = deque(maxlen=10)  # recent compute times (seconds), for the delay estimate
         self.chunks = 0
         self.log_file = open(cfg.log_chunks, "a") if cfg.log_chunks else None
-        self._new_session(None)
+        self._new_client(None)
 
-    def _new_session(self, spec: Optional[RemotePolicyConfig]) -> None:
+    def _new_client(self, spec: Optional[RemotePolicyConfig]) -> None:
         self.spec = spec
         self.prev: Optional[Tensor] = None        # the last chunk [H, D], policy units
         self.prev_start: Optional[int] = None
         self.prev_sent = 0
-        self.last_queued: Optional[int] = None
-        while not self.slot.empty():
-            self.slot.get_nowait()
+        with self.obs_lock:
+            self.last_queued: Optional[int] = None
+            while not self.slot.empty():
+                self.slot.get_nowait()
 
     # ------------------------------------------------------------------ the protocol
     def Ready(self, request, context):  # noqa: N802
         with self.lock:
-            self._new_session(None)
+            self._new_client(None)
         log.info("client %s ready", context.peer())
         return services_pb2.Empty()
 
@@ -228,7 +230,7 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
             log.error("refused policy instructions: %s", err)
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"action-decoder serve: {err}")
         with self.lock:
-            self._new_session(spec)
+            self._new_client(spec)
         log.info("client %s: %d actions per chunk on %s", context.peer(), spec.actions_per_chunk, spec.device)
         return services_pb2.Empty()
 
@@ -260,7 +262,7 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
             context.abort(grpc.StatusCode.INVALID_ARGUMENT,
                           f"action-decoder serve: observation: expected LeRobot's TimedObservation, got "
                           f"{type(obs).__name__}")
-        with self.lock:
+        with self.obs_lock:                        # the client's control loop waits for this reply
             if self.spec is None or not should_predict(obs.get_timestep(), obs.must_go, self.last_queued):
                 return services_pb2.Empty()
             self.last_queued = obs.get_timestep()
@@ -290,7 +292,7 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
 
     # ------------------------------------------------------------------ one chunk
     def chunk(self, obs: TimedObservation, received: float) -> tuple[list, dict]:
-        """The timed actions for `obs` and the record of how they were made (the session lock is held)."""
+        """The timed actions for `obs` and the record of how they were made (the lock is held)."""
         cfg, served, spec = self.cfg, self.served, self.spec
         core, k = served.core, obs.get_timestep()
         picked = time.time()
