@@ -99,6 +99,7 @@ def test_robot_client_receives_timed_chunks_with_real_time_chunking(checkpoints,
     # the first chunk starts at the first observation; every later one after the action observed
     assert records[0]["start"] == records[0]["obs_timestep"] == 0 and records[0]["rtc_mode"] is None
     assert all(r["start"] == r["obs_timestep"] + 1 for r in records[1:])
+    assert all(r["client_hz"] > 0 for r in records[1:] if r["client_hz"] is not None)
     assert [c[0].get_timestep() for c in received] == [r["start"] for r in records[: len(received)]]
     # real-time chunking: the committed rows are the previous chunk's actions at those timesteps, exactly
     conditioned = [(i, r) for i, r in enumerate(records[: len(received)]) if r["committed"] > 0]

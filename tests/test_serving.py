@@ -9,7 +9,8 @@ import pytest
 
 from action_decoder.cli import main
 from action_decoder.serving import (SERVER_MODULE, ChunkPlan, ServeConfig, check_serve_config, chunk_timing,
-                                    delay_steps, expected_latency, plan_chunk, should_predict)
+                                    control_rate, delay_steps, expected_latency, plan_chunk, rate_mismatch,
+                                    should_predict)
 
 
 @pytest.mark.parametrize("seconds, fps, steps", [(0.0, 30, 0), (0.010, 30, 1), (1 / 30, 30, 1), (0.034, 30, 2),
@@ -67,6 +68,20 @@ def test_chunk_timing_labels_consecutive_timesteps_one_period_apart():
     assert [step for _, step in timing] == [10, 11, 12]
     assert [ts for ts, _ in timing] == pytest.approx([100.05, 100.10, 100.15])
     assert chunk_timing(5.0, 0, 0, 2, 10.0) == [(5.0, 0), (pytest.approx(5.1), 1)]
+
+
+def test_control_rate_is_the_median_step_rate_over_observations_that_advanced():
+    assert control_rate([]) is None and control_rate([(0.0, 0)]) is None
+    assert control_rate([(0.0, 3), (0.5, 3)]) is None                 # the client executed nothing between them
+    # one observation per control step at 20 Hz, a stall (same timestep) and a late one (2 steps in 0.1 s)
+    samples = [(0.0, 0), (0.05, 1), (0.10, 2), (0.30, 2), (0.35, 3), (0.45, 5), (0.50, 6)]
+    assert control_rate(samples) == pytest.approx(20.0)
+    assert control_rate([(0.0, 0), (0.1, 1), (0.3, 2)]) == pytest.approx(7.5)    # median of 10 and 5
+
+
+def test_rate_mismatch_flags_rates_a_quarter_away_from_fps():
+    assert not rate_mismatch(None, 30) and not rate_mismatch(28.0, 30) and not rate_mismatch(37.4, 30)
+    assert rate_mismatch(15.0, 30) and rate_mismatch(40.0, 30)
 
 
 def test_should_predict_newer_observations_and_those_that_must_go():

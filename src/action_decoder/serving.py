@@ -154,6 +154,23 @@ def chunk_timing(obs_timestamp: float, obs_timestep: int, start: int, rows: int,
     return [(obs_timestamp + (start + i - obs_timestep) / fps, start + i) for i in range(rows)]
 
 
+def control_rate(samples: Sequence[tuple[float, int]]) -> Optional[float]:
+    """The client's control frequency in Hz from its observations' (timestamp, timestep) pairs, in the
+    order sent: the median of Δtimestep/Δtimestamp over consecutive pairs whose timestep advanced
+    (the client executed actions between them); None before there is one."""
+    rates = [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(samples, samples[1:]) if b[1] > a[1] and b[0] > a[0]]
+    if not rates:
+        return None
+    rates.sort()
+    mid = len(rates) // 2
+    return rates[mid] if len(rates) % 2 else (rates[mid - 1] + rates[mid]) / 2
+
+
+def rate_mismatch(measured: Optional[float], fps: float, tolerance: float = 0.25) -> bool:
+    """Whether a measured control rate is more than `tolerance` (relative) away from --fps."""
+    return measured is not None and abs(measured - fps) > tolerance * fps
+
+
 def should_predict(obs_timestep: int, must_go: bool, last_predicted: Optional[int]) -> bool:
     """Whether an observation earns a chunk: the client says it must (its queue ran empty), or it is
     newer than the last observation a chunk was computed for (the client sends one every control

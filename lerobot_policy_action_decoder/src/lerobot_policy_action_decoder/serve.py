@@ -42,8 +42,8 @@ from torch import Tensor
 from action_decoder import ActionDecoderPolicy as CorePolicy
 from action_decoder.cli import check_device
 from action_decoder.policy import follow_last
-from action_decoder.serving import (ServeConfig, chunk_timing, delay_steps, expected_latency, plan_chunk,
-                                    should_predict)
+from action_decoder.serving import (ServeConfig, chunk_timing, control_rate, delay_steps, expected_latency, plan_chunk,
+                                    rate_mismatch, should_predict)
 from lerobot.async_inference.helpers import RemotePolicyConfig, TimedAction, TimedObservation
 from lerobot.transport import services_pb2, services_pb2_grpc
 from lerobot.transport.utils import receive_bytes_in_chunks
@@ -210,8 +210,10 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         self.prev: Optional[Tensor] = None        # the last chunk [H, D], policy units
         self.prev_start: Optional[int] = None
         self.prev_sent = 0
+        self.warned_rate = False
         with self.obs_lock:
             self.last_queued: Optional[int] = None
+            self.sent_obs: deque = deque(maxlen=30)     # (client timestamp, timestep) of the latest observations
             while not self.slot.empty():
                 self.slot.get_nowait()
 
@@ -263,6 +265,7 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
                           f"action-decoder serve: observation: expected LeRobot's TimedObservation, got "
                           f"{type(obs).__name__}")
         with self.obs_lock:                        # the client's control loop waits for this reply
+            self.sent_obs.append((obs.get_timestamp(), obs.get_timestep()))
             if self.spec is None or not should_predict(obs.get_timestep(), obs.must_go, self.last_queued):
                 return services_pb2.Empty()
             self.last_queued = obs.get_timestep()
@@ -299,6 +302,13 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         uplink, waited = received - obs.get_timestamp(), picked - received
         latency = expected_latency(uplink, waited, self.compute_s)
         delay = cfg.delay if cfg.delay is not None else delay_steps(latency, cfg.fps)
+        with self.obs_lock:
+            samples = list(self.sent_obs)
+        client_hz = control_rate(samples)
+        if len(samples) >= 10 and rate_mismatch(client_hz, cfg.fps) and not self.warned_rate:
+            log.warning("the client executes about %.1f actions per second, --fps is %g: the delay in control steps "
+                        "is computed with --fps; restart the server with --fps %.0f", client_hz, cfg.fps, client_hz)
+            self.warned_rate = True
         plan = plan_chunk(k, self.prev_start, self.prev_sent, delay if self.rtc else 0, served.horizon)
         start = time.perf_counter()
         batch = served.prepare(lerobot_observation(obs.get_observation(), spec.lerobot_features,
@@ -323,7 +333,8 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         self.chunks += 1
         record = {"chunk": self.chunks, "obs_timestep": k, "must_go": bool(obs.must_go), "start": plan.start,
                   "rows": len(rows), "delay": delay, "overlap": plan.overlap, "committed": committed,
-                  "rtc_mode": mode, "uplink_ms": round(1000 * uplink, 3), "waited_ms": round(1000 * waited, 3),
+                  "rtc_mode": mode, "client_hz": None if client_hz is None else round(client_hz, 2),
+                  "uplink_ms": round(1000 * uplink, 3), "waited_ms": round(1000 * waited, 3),
                   "prepare_ms": round(1000 * (prepared - start), 3), "sample_ms": round(1000 * (sampled - prepared), 3),
                   "compute_ms": round(1000 * (done - start), 3)}
         return actions, record
