@@ -226,7 +226,11 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
 
     def SendPolicyInstructions(self, request, context):  # noqa: N802
         try:
-            spec = pickle.loads(request.data)  # nosec
+            try:
+                spec = pickle.loads(request.data)  # nosec
+            except Exception as err:               # a payload of classes this side lacks, or no pickle at all
+                raise ValueError(f"policy instructions: expected a pickled RemotePolicyConfig, could not read it "
+                                 f"({type(err).__name__}: {err})") from None
             self._accept(spec)
         except ValueError as err:
             log.error("refused policy instructions: %s", err)
