@@ -4,6 +4,7 @@ python -m benchmarks multimodal [--quick] [--tiny] ...   (the multimodal benchma
 python -m benchmarks cameras [...]   (image- against state-conditioned policies, benchmarks/cameras.py)
 python -m benchmarks export [...]   (eager, compiled and onnxruntime latency per chunk, benchmarks/export.py)
 python -m benchmarks rtc-latency [...]   (trained and guided RTC chunk against a plain chunk, benchmarks/rtc_latency.py)
+python -m benchmarks serve [...]   (action-decoder serve with LeRobot's RobotClient: latency, queue; benchmarks/serve.py)
 """
 
 from __future__ import annotations
@@ -36,6 +37,10 @@ def main(argv: list[str] | None = None) -> int:
         from .rtc_latency import main as rtc_latency_main
 
         return rtc_latency_main(argv[1:])
+    if argv[:1] == ["serve"]:
+        from .serve import main as serve_main
+
+        return serve_main(argv[1:])
     if argv[:1] == ["cameras"]:
         from .cameras import main as cameras_main
 

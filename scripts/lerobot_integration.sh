@@ -9,7 +9,9 @@
 # (d) `lerobot-train --policy.type=action_decoder` for DDPM, flow matching and MeanFlow;
 # (e) reload each checkpoint with LeRobot's `from_pretrained` and run `select_action`; MeanFlow
 # again with 2 data-parallel processes (torchrun → accelerate, gloo on CPU);
-# (f) the plugin's unit tests with LeRobot installed; closed loop on LeRobot's Meta-World env:
+# (f) the plugin's unit tests with LeRobot installed; (i) `action-decoder serve` on loopback with
+# LeRobot's own RobotClient and a simulated robot (tests/test_serve_lerobot.py: MF-1 and FM-10 chunks,
+# real-time chunking; about a minute); closed loop on LeRobot's Meta-World env:
 # (g) a state policy trained by `action-decoder train` on `record --layout lerobot` data, converted
 # (`action-decoder convert --to lerobot`) and evaluated by `lerobot-eval --env.type=metaworld`,
 # within 10 points of `action-decoder eval` on the same task and episode count; (h) a camera
@@ -62,6 +64,9 @@ setup_venv() {
   mapfile -t deps < <("$PY" -c "import sys, tomllib, re; deps = tomllib.load(open(sys.argv[1], 'rb'))['project']['dependencies']; \
 print('\n'.join(d for d in deps if re.split('[<>=!~ ;]', d)[0] != 'torch'))" "$REPO/pyproject.toml")
   "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "${deps[@]}" pytest || return 1
+  # grpcio for `action-decoder serve` and LeRobot's RobotClient (step i): LeRobot's async extra.
+  "$PY" -c "import grpc" 2>/dev/null || "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot[async]==0.4.4" \
+      || return 1
   # Meta-World for `action-decoder record` and LeRobot's Meta-World env (steps c, g, h). Not
   # "lerobot[metaworld]": it brings mujoco 4, with which metaworld 3.0 fails ("could not broadcast").
   "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0,<4" \
@@ -215,6 +220,7 @@ if [ "$FAILED" = 0 ]; then
   done
   step d_lerobot_train_ddp_mean_flow lerobot_train_ddp
   step f_plugin_tests_with_lerobot "$PY" -m pytest -q -p no:cacheprovider "$REPO/tests/test_lerobot_plugin.py"
+  step i_serve_lerobot_robot_client "$PY" -m pytest -q -p no:cacheprovider "$REPO/tests/test_serve_lerobot.py"
   if [ -z "${LEROBOT_SKIP_CLOSED_LOOP:-}" ]; then
     step g_state_policy_lerobot_eval_metaworld state_policy_closed_loop
     step h_camera_policy_lerobot_eval_metaworld camera_policy_closed_loop

@@ -1,4 +1,4 @@
-"""`action-decoder` console script: train, eval, finetune, record, convert, export (every option from a dataclass, via tyro)."""
+"""`action-decoder` console script: train, eval, finetune, record, convert, export, serve (every option from a dataclass, via tyro)."""
 
 from __future__ import annotations
 
@@ -44,12 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     from .lerobot_checkpoint import ConvertConfig, run_convert
     from .record import RecordConfig, run_record
     from .rl import FinetuneConfig, finetune
+    from .serving import ServeConfig, run_serve
     from .train import TrainConfig, closed_loop_env, train
 
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
     commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "record": RecordConfig,
-                "convert": ConvertConfig, "export": ExportConfig}
+                "convert": ConvertConfig, "export": ExportConfig, "serve": ServeConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
         if hasattr(cfg, "device"):
@@ -70,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
             run_convert(cfg)
         elif isinstance(cfg, ExportConfig):
             run_export(cfg)
+        elif isinstance(cfg, ServeConfig):
+            run_serve(cfg)
         else:
             run_eval(cfg)
     except (ValueError, OSError, FloatingPointError) as err:
@@ -93,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"action-decoder: interrupted; continue from {ckpt} with --resume" if ckpt is not None else
                   f"action-decoder: interrupted before the first checkpoint in {cfg.output_dir}: nothing to "
                   f"resume, run it again", file=sys.stderr)
+        elif isinstance(cfg, ServeConfig):
+            print("action-decoder: serve stopped", file=sys.stderr)
+            return 0
         else:
             print(f"action-decoder: interrupted; {type(cfg).__name__.removesuffix('Config').lower()} writes its "
                   f"results at the end, so nothing was saved: run it again", file=sys.stderr)

@@ -5,6 +5,9 @@ LeRobot (>= 0.4.3) imports this distribution at start-up (its name starts with
 its factory then finds `modeling_action_decoder.ActionDecoderPolicy` and
 `processor_action_decoder.make_action_decoder_pre_post_processors` by name.
 
+It also registers a simulated robot for LeRobot's `RobotClient` (`sim_robot`, `--robot.type=action_decoder_sim`);
+`serve` is the policy server of `action-decoder serve` (LeRobot's async-inference protocol).
+
 `convert` (batch keys, config mapping) needs only torch and action_decoder. Without LeRobot
 installed the package still imports; its LeRobot classes then raise ImportError when used.
 """
@@ -14,12 +17,14 @@ from __future__ import annotations
 import importlib.util
 
 __version__ = "0.1.0"
-_LEROBOT_NAMES = ("ActionDecoderConfig", "ActionDecoderPolicy", "make_action_decoder_pre_post_processors")
+_LEROBOT_NAMES = ("ActionDecoderConfig", "ActionDecoderPolicy", "make_action_decoder_pre_post_processors", "SimRobot",
+                  "SimRobotConfig")
 
 if importlib.util.find_spec("lerobot") is not None:
     from .configuration_action_decoder import ActionDecoderConfig
     from .modeling_action_decoder import ActionDecoderPolicy
     from .processor_action_decoder import make_action_decoder_pre_post_processors
+    from .sim_robot import SimRobot, SimRobotConfig   # `--robot.type=action_decoder_sim` for RobotClient
 
     __all__ = list(_LEROBOT_NAMES)
 else:
