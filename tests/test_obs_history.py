@@ -118,6 +118,7 @@ def test_n2_reads_every_step_and_saves_its_config(tmp_path):
         assert not torch.allclose(policy.sample(older, noise=noise).actions, base)
     policy.save_pretrained(tmp_path / "p")
     assert json.loads((tmp_path / "p" / "config.json").read_text())["n_obs_steps"] == 2
+    assert "normalisation, the last 2 observations |" in (tmp_path / "p" / "README.md").read_text()
     loaded = ActionDecoderPolicy.from_pretrained(tmp_path / "p")
     assert loaded.config.n_obs_steps == 2 and torch.equal(loaded.sample(batch, noise=noise).actions, base)
 
@@ -242,3 +243,15 @@ def test_cli_refuses_a_bad_history_in_one_line(tmp_path):
     code, out, err = _cli(["train", "--dataset", str(CAMS), "--n-obs-steps", "0", "--output-dir",
                            str(tmp_path / "run")], tmp_path / "cache")
     assert code == 2 and err.strip() == "action-decoder: error: --n-obs-steps: expected a positive integer, got 0", err
+
+
+def test_the_guides_control_loop_runs_as_written():
+    import re
+
+    guide = (ROOT / "docs" / "guides" / "observation_history.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", guide, re.S)
+    assert len(blocks) == 1
+    scope: dict = {}
+    exec(compile(blocks[0], "observation_history.md", "exec"), scope)
+    assert scope["stacked"]["state"].shape == (3, 2, 6) and scope["chunk"].shape == (3, 8, 2)
+    assert scope["stacked"]["observation_is_pad"].tolist() == [[False, False]] * 3    # step 7: two real steps each
