@@ -6,7 +6,8 @@ Each (task, seed, n) run trains `action-decoder train --n-obs-steps n` (flow mat
 defaults otherwise) and evaluates the saved policy on the same 50 layouts with `action-decoder
 eval`; runs live under --runs and are skipped when their evaluation is there. The summary goes to
 --results (JSON): per task and n the success rate, with the binomial standard error
-√(p(1 − p)/episodes) of each rate and of the difference n = 2 − n = 1.
+√(p(1 − p)/episodes) of each rate and of the difference n = 2 − n = 1; `--table PAGE` rewrites the
+table between the page's markers.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ def main(argv=None) -> None:
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes per run")
     p.add_argument("--runs", default="runs/obs_history", help="directory of the runs")
     p.add_argument("--results", default="docs/benchmarks/obs_history.json", help="JSON summary")
+    p.add_argument("--table", default=None, help="a Markdown page whose table (between its markers) is rewritten")
     args = p.parse_args(argv)
     rows = []
     for task in args.tasks.split(","):
@@ -68,6 +70,39 @@ def main(argv=None) -> None:
     for r in rows:
         r["se"] = binomial_se(r["success"], r["episodes"])
     Path(args.results).write_text(json.dumps({"steps": args.steps, "rows": rows}, indent=1) + "\n")
+    if args.table:
+        page = Path(args.table)
+        text = page.read_text()
+        start, end = text.index(TABLE_START) + len(TABLE_START), text.index(TABLE_END)
+        page.write_text(text[:start] + "\n" + table(rows) + text[end:])
+
+
+TABLE_START, TABLE_END = "<!-- table: benchmarks.obs_history -->", "<!-- end of table -->"
+
+
+def table(rows: list[dict]) -> str:
+    """Success in % ± binomial SE per task and seed, n = 1 against n = 2, and the difference with its SE."""
+    by = {}
+    for r in rows:
+        by.setdefault((r["task"], r["seed"]), {})[r["n_obs_steps"]] = r
+    lines = ["| task | seed | n = 1 | n = 2 | n = 2 − n = 1 |", "|---|---:|---:|---:|---:|"]
+    pairs = []
+    for (task, seed), got in by.items():
+        if 1 not in got or 2 not in got:
+            continue
+        a, b = got[1], got[2]
+        se = math.hypot(a["se"], b["se"])
+        pairs.append((a, b))
+        lines.append(f"| {task} | {seed} | {100 * a['success']:.0f} ± {100 * a['se']:.0f} | "
+                     f"{100 * b['success']:.0f} ± {100 * b['se']:.0f} | {100 * (b['success'] - a['success']):+.0f} ± "
+                     f"{100 * se:.0f} |")
+    if pairs:
+        k = len(pairs)
+        m1, m2 = (sum(p[i]["success"] for p in pairs) / k for i in (0, 1))
+        se = math.sqrt(sum(p[0]["se"] ** 2 + p[1]["se"] ** 2 for p in pairs)) / k
+        lines.append(f"| **mean ({k} task{'s' if k > 1 else ''})** | | **{100 * m1:.1f}** | **{100 * m2:.1f}** | "
+                     f"**{100 * (m2 - m1):+.1f} ± {100 * se:.1f}** |")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -138,8 +138,8 @@ def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: i
         if not isinstance(x, Tensor) or list(x.shape[:len(lead)]) != lead or x.dim() != len(lead) + 3 \
                 or x.shape[len(lead)] != 3:
             got = list(x.shape) if isinstance(x, Tensor) else ("nothing" if x is None else type(x).__name__)
-            raise ValueError(f"batch[{key!r}]: expected camera frames of shape {[*lead, 3, 'H', 'W']} (float in "
-                             f"[0, 1]), got {got}")
+            raise ValueError(f"batch[{key!r}]: expected camera frames of shape [{', '.join(map(str, lead))}, 3, H, W] "
+                             f"(float in [0, 1]), got {got}")
         if n_obs_steps is not None:
             x = x.flatten(0, 1)                                                           # [B·n, 3, H, W]
         x = x.float() / 255.0 if not x.is_floating_point() else x.float()
