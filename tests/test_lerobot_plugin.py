@@ -555,6 +555,8 @@ def test_history_batches_keep_their_step_axis_and_train_a_camera_policy():
               **{k: lerobot[k][:, -1] for k in CAM_KEYS}}
     one = convert.to_core_batch(single, [], 6, False, CAM_KEYS, 16, n_obs_steps=2)
     assert one["state"].shape == (4, 6) and one["images"].shape == (4, 2, 3, 16, 16)
+    steps_of_one = {k: v[:, None] for k, v in single.items()}                  # [B, 1, ...]: one observation too
+    assert convert.to_core_batch(steps_of_one, [], 6, False, CAM_KEYS, 16, n_obs_steps=2)["state"].shape == (4, 6)
     assert policy.eval().select_action(one).shape == (4, 3)
     assert policy.history.push({"state": one["state"]})["observation_is_pad"].tolist() == [[False, False]] * 4
     with pytest.raises(ValueError, match=r"^batch\['observation.state'\]: expected shape \[B, 6\] or \[B, 2, 6\] "

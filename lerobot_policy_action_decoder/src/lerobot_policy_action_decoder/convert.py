@@ -176,7 +176,7 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
     if not isinstance(state, Tensor):
         raise ValueError(f"batch[{STATE!r}]: missing; expected a tensor of shape [B, {state_dim}], got "
                          f"{type(state).__name__} (keys {sorted(batch)})")
-    stacked = n_obs_steps > 1 and state.dim() == 3
+    stacked = n_obs_steps > 1 and state.dim() == 3 and state.shape[1] != 1
     if stacked:
         if list(state.shape[1:]) != [n_obs_steps, state_dim]:
             raise ValueError(f"batch[{STATE!r}]: expected shape [B, {state_dim}] or [B, {n_obs_steps}, {state_dim}] "
