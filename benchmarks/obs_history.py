@@ -41,7 +41,7 @@ def run_one(task: str, seed: int, n: int, args) -> dict:
                            check=True, env=env)
     res = json.loads(out.read_text())
     return {"task": task, "seed": seed, "n_obs_steps": n, "episodes": res["episodes_per_task"],
-            "success": res["success_rate"]}
+            "success": res["success_rate"], "boundary_jerk": res["boundary_jerk"]}
 
 
 def binomial_se(p: float, episodes: int) -> float:
@@ -81,11 +81,13 @@ TABLE_START, TABLE_END = "<!-- table: benchmarks.obs_history -->", "<!-- end of 
 
 
 def table(rows: list[dict]) -> str:
-    """Success in % ± binomial SE per task and seed, n = 1 against n = 2, and the difference with its SE."""
+    """Success in % ± binomial SE per task and seed, n = 1 against n = 2, the difference with its SE, and the
+    mean squared jerk of the executed actions across chunk switches (`envs.evaluate`'s boundary_jerk)."""
     by = {}
     for r in rows:
         by.setdefault((r["task"], r["seed"]), {})[r["n_obs_steps"]] = r
-    lines = ["| task | seed | n = 1 | n = 2 | n = 2 − n = 1 |", "|---|---:|---:|---:|---:|"]
+    lines = ["| task | seed | n = 1 | n = 2 | n = 2 − n = 1 | boundary jerk n = 1 | n = 2 |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     pairs = []
     for (task, seed), got in by.items():
         if 1 not in got or 2 not in got:
@@ -95,13 +97,13 @@ def table(rows: list[dict]) -> str:
         pairs.append((a, b))
         lines.append(f"| {task} | {seed} | {100 * a['success']:.0f} ± {100 * a['se']:.0f} | "
                      f"{100 * b['success']:.0f} ± {100 * b['se']:.0f} | {100 * (b['success'] - a['success']):+.0f} ± "
-                     f"{100 * se:.0f} |")
+                     f"{100 * se:.0f} | {a['boundary_jerk']:.2f} | {b['boundary_jerk']:.2f} |")
     if pairs:
         k = len(pairs)
         m1, m2 = (sum(p[i]["success"] for p in pairs) / k for i in (0, 1))
         se = math.sqrt(sum(p[0]["se"] ** 2 + p[1]["se"] ** 2 for p in pairs)) / k
         lines.append(f"| **mean ({k} task{'s' if k > 1 else ''})** | | **{100 * m1:.1f}** | **{100 * m2:.1f}** | "
-                     f"**{100 * (m2 - m1):+.1f} ± {100 * se:.1f}** |")
+                     f"**{100 * (m2 - m1):+.1f} ± {100 * se:.1f}** | | |")
     return "\n".join(lines) + "\n"
 
 
