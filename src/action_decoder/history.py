@@ -38,6 +38,7 @@ class ObservationHistory:
         if isinstance(n_obs_steps, bool) or not isinstance(n_obs_steps, (int, np.integer)) or n_obs_steps < 1:
             raise ValueError(f"n_obs_steps: expected a positive integer number of observations, got {n_obs_steps!r}")
         self.n = int(n_obs_steps)
+        """The number of observations kept per row."""
         self._frames: dict[str, list] = {}      # key -> the last n pushes, each [B, ...]
         self._seen: dict[str, np.ndarray] = {}  # key -> [B] observations pushed since each row's reset (≤ n)
         self._batch: Optional[int] = None
