@@ -532,3 +532,69 @@ def test_record_layout_lerobot_observes_exactly_what_lerobots_metaworld_env_does
         pytest.skip(f"offscreen rendering is unavailable here: {res.stderr.strip().splitlines()[-1]}")
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout.strip().splitlines()[-1]) == {"pixels": True, "state": True}
+
+
+# ---------------------------------------------------------------------- observation history (n_obs_steps)
+def test_history_batches_keep_their_step_axis_and_train_a_camera_policy():
+    """A dataset batch of `observation_delta_indices` = [-1, 0] keeps its steps ([B, 2, S], frames [B, 2, 3,
+    H, W] → images [B, 2, N_cam, 3, S, S]); an environment's single observation stays one for select_action."""
+    torch.manual_seed(0)
+    cfg = convert.decoder_config(plugin_cfg(chunk_size=8, image_size=16, n_obs_steps=2), 6, 3, CAM_KEYS)
+    assert cfg.n_obs_steps == 2
+    policy = CorePolicy(cfg)
+    g = torch.Generator().manual_seed(1)
+    lerobot = {"observation.state": torch.randn(4, 2, 6, generator=g), "action": torch.randn(4, 8, 3, generator=g),
+               "observation.images.wrist": torch.rand(4, 2, 3, 32, 32, generator=g),
+               "observation.images.top": torch.rand(4, 2, 3, 16, 16, generator=g)}
+    core = convert.to_core_batch(lerobot, [], 6, True, CAM_KEYS, 16, (8, 3), n_obs_steps=2)
+    assert core["state"].shape == (4, 2, 6) and core["images"].shape == (4, 2, 2, 3, 16, 16)
+    assert torch.equal(core["images"][:, 1, 1], lerobot["observation.images.top"][:, 1])
+    policy.compute_loss(core).loss.backward()
+    assert policy.model.image_step_embed.grad.abs().sum() > 0
+    single = {"observation.state": lerobot["observation.state"][:, -1],
+              **{k: lerobot[k][:, -1] for k in CAM_KEYS}}
+    one = convert.to_core_batch(single, [], 6, False, CAM_KEYS, 16, n_obs_steps=2)
+    assert one["state"].shape == (4, 6) and one["images"].shape == (4, 2, 3, 16, 16)
+    steps_of_one = {k: v[:, None] for k, v in single.items()}                  # [B, 1, ...]: one observation too
+    assert convert.to_core_batch(steps_of_one, [], 6, False, CAM_KEYS, 16, n_obs_steps=2)["state"].shape == (4, 6)
+    assert policy.eval().select_action(one).shape == (4, 3)
+    assert policy.history.push({"state": one["state"]})["observation_is_pad"].tolist() == [[False, False]] * 4
+    with pytest.raises(ValueError, match=r"^batch\['observation.state'\]: expected shape \[B, 6\] or \[B, 2, 6\] "
+                                         r"\(n_obs_steps=2\), got \[4, 3, 6\]$"):
+        convert.to_core_batch({**lerobot, "observation.state": torch.randn(4, 3, 6)}, [], 6, True, CAM_KEYS, 16,
+                              n_obs_steps=2)
+
+
+@lerobot_only
+def test_lerobot_history_comes_from_delta_indices_and_select_action_pads_with_the_first_observation(toy_root):
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_policy_action_decoder import ActionDecoderConfig
+
+    assert ActionDecoderConfig(device="cpu", n_obs_steps=2).observation_delta_indices == [-1, 0]
+    assert ActionDecoderConfig(device="cpu", n_obs_steps=3).observation_delta_indices == [-2, -1, 0]
+    with pytest.raises(ValueError, match=r"^policy.n_obs_steps: expected a positive integer"):
+        ActionDecoderConfig(device="cpu", n_obs_steps=0)
+    torch.manual_seed(0)
+    policy, pre, post, meta = _lerobot_policy(toy_root, n_obs_steps=2)
+    assert policy.decoder.config.n_obs_steps == 2
+    ds = LeRobotDataset("local/v30_toy", root=toy_root, delta_timestamps=resolve_delta_timestamps(policy.config, meta))
+    first = ds[0]                                        # an episode's first frame: itself twice, marked as padding
+    assert first["observation.state"].shape == (2, 6) and first["observation.state_is_pad"].tolist() == [True, False]
+    assert torch.equal(first["observation.state"][0], first["observation.state"][1])
+    batch = pre(next(iter(torch.utils.data.DataLoader(ds, batch_size=8, shuffle=True))))
+    assert batch["observation.state"].shape == (8, 2, 6)
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss)
+    policy.eval().reset()
+    seen = []
+    sample = policy.decoder.sample
+    policy.decoder.sample = lambda b, **kw: (seen.append(b["state"].clone()), sample(b, **kw))[1]
+    for i in range(5):                                   # a chunk at calls 0 and 4 (n_action_steps = 4)
+        frame = ds[i]
+        obs = pre({"observation.state": frame["observation.state"][-1], "task": frame["task"]})
+        assert post(policy.select_action(obs)).shape == (1, 3)
+    assert seen[0].shape == (1, 2, 6) and torch.equal(seen[0][0, 0], seen[0][0, 1])
+    assert not torch.equal(seen[1][0, 0], seen[1][0, 1])

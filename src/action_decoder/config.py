@@ -39,7 +39,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 7
+CONFIG_FORMAT_VERSION = 8
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -50,6 +50,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
+    8: {"n_obs_steps": 1},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -209,6 +210,12 @@ class DecoderConfig:
     """Training-time random shift of camera frames: pad by this many pixels, crop back (0: none;
     measured in docs/benchmarks/cameras.md)."""
     # --- policy ---
+    n_obs_steps: int = 1
+    """Observations the policy conditions on: the current one and the n − 1 before it (LeRobot's
+    `n_obs_steps`). With n > 1 `batch["state"]` is [B, n, state_dim] (oldest first) and `batch["images"]`
+    [B, n, N_cam, 3, S, S]; each step is a state token (and camera tokens) with a learned step embedding.
+    At an episode's start the first observation stands in for the missing ones (`history.ObservationHistory`).
+    1: the current observation only, the network of format-7 files, which read as 1."""
     n_action_steps: int = 4
     """Actions executed from each chunk before re-planning (at most action_chunk_size; re-planning rates
     are compared in docs/benchmarks/metaworld_bc_n8.md)."""
@@ -280,7 +287,7 @@ class DecoderConfig:
                                  f"time in (0, 1], got {self.flow_sde_t_min!r}")
         for name in ("num_train_timesteps", "num_inference_timesteps", "flow_sde_num_steps", "action_chunk_size",
                      "state_dim", "action_dim", "hidden_size", "num_hidden_layers",
-                     "num_attention_heads", "num_key_value_heads", "n_action_steps"):
+                     "num_attention_heads", "num_key_value_heads", "n_obs_steps", "n_action_steps"):
             _positive_int(name, getattr(self, name))
         for name in ("intermediate_size", "context_dim", "vlm_num_layers", "vlm_head_dim",
                      "vlm_num_key_value_heads"):
@@ -297,6 +304,9 @@ class DecoderConfig:
             raise ValueError(f"noise_actor_hidden: expected a width >= 0 (0: no noise actor), "
                              f"got {self.noise_actor_hidden!r}")
         _positive_float("noise_actor_bound", self.noise_actor_bound)
+        if self.n_obs_steps > 1 and self.noise_actor_hidden:
+            raise ValueError(f"noise_actor_hidden: the noise actor reads one state; expected 0 with n_obs_steps="
+                             f"{self.n_obs_steps}, got {self.noise_actor_hidden}")
         _finite("meanflow_time_mean", self.meanflow_time_mean)
         if not 0.0 <= self.meanflow_ratio_r_neq_t <= 1.0:
             raise ValueError(f"meanflow_ratio_r_neq_t: expected a fraction in [0, 1], "

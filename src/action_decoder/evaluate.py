@@ -89,7 +89,8 @@ def row_generators(base: int, episode_seeds, plan_indices, device) -> list:
 
 def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optional[str], steps: Optional[int],
                    generator: torch.Generator, sample_fn=None, observe=None, rtc_mode: Optional[str] = None):
-    """Adapt a policy to the env harness: states [B, S] (numpy) → chunks [B, H, D] (numpy).
+    """Adapt a policy to the env harness: states [B, S] (numpy; [B, n, S] for a policy of `n_obs_steps`
+    n > 1, as `envs.evaluate` stacks them) → chunks [B, H, D] (numpy).
 
     Given `episode_seeds` and `plan_indices` [B] (as `envs.evaluate` passes them), row b samples
     from its own generator, seeded by (generator.initial_seed(), episode_seeds[b], plan_indices[b]),
@@ -256,7 +257,7 @@ def run_eval(cfg: EvalConfig) -> dict:
             res = evaluate(fn, task, episodes=cfg.episodes, seed=cfg.seed, n_action_steps=n_exec,
                            max_steps=cfg.max_steps, num_envs=cfg.num_envs, task_index=index, progress=progress,
                            record=cfg.plot, on_step=camera,
-                           delay=cfg.delay, rtc=cfg.rtc, camera_rig=rig)
+                           delay=cfg.delay, rtc=cfg.rtc, camera_rig=rig, n_obs_steps=policy.config.n_obs_steps)
         finally:
             for closable in (camera, rig):
                 if closable is not None:

@@ -89,6 +89,10 @@ def export_refusal(policy: "ActionDecoderPolicy", sampler: Optional[str]) -> Opt
         return ("noise_actor_hidden: a noise-space (finetune --algo dsrl) policy draws its noise from its noise "
                 "actor, which the graph, whose input is the noise itself, does not hold; export the BC checkpoint "
                 "and feed it the actor's noise (policy.noise_actor.sample)")
+    if cfg.n_obs_steps > 1:
+        return (f"n_obs_steps: the exported and compiled samplers take one observation (state [B, S]); this policy "
+                f"conditions on the last {cfg.n_obs_steps} (n_obs_steps={cfg.n_obs_steps}): sample it with "
+                f"policy.predict_action_chunk")
     if cfg.uses_vlm_cache:
         return ("vlm_key_values: a policy conditioned on a VLM's KV cache is not exported (the cache is a "
                 "per-layer structure of the VLM's own shapes); export a policy with context tokens or cameras")

@@ -225,7 +225,8 @@ def _policy_table(config: DecoderConfig, num_parameters: int) -> list[str]:
             f"| sampler | {sampler} ({native if sampler == 'ode' else 'SDE, ' + config.flow_sde_mode}), K = {steps} |",
             f"| action chunk | {config.action_chunk_size} steps × {config.action_dim} dims, "
             f"{config.n_action_steps} executed per plan |",
-            f"| state | {config.state_dim}-d, {config.state_layout} layout, {config.normalization_mode} normalisation |",
+            f"| state | {config.state_dim}-d, {config.state_layout} layout, {config.normalization_mode} normalisation"
+            f"{f', the last {config.n_obs_steps} observations' if config.n_obs_steps > 1 else ''} |",
             f"| conditioning | {' and '.join(c for c in conditioning if c) or 'state only'} |",
             f"| network | Action Expert transformer: {config.num_hidden_layers} "
             f"layer{'s' if config.num_hidden_layers != 1 else ''}, hidden size "

@@ -29,6 +29,7 @@ from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, m
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
 from .flows.samplers import gaussian_target_std
+from .history import ObservationHistory
 from .noise_actor import NoiseActor
 from .normalize import make_normalizers
 from .state_layout import network_state
@@ -100,6 +101,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             if config.noise_actor_hidden else None
         """The initial-noise policy of a noise-space fine-tuned checkpoint (`finetune --algo dsrl`), or None."""
         self._queue: deque = deque()
+        self.history = ObservationHistory(config.n_obs_steps)
+        """The last `n_obs_steps` observations `select_action` was given (`history.ObservationHistory`)."""
         self._warned_proxy = self._warned_steps = self._warned_blend = False
 
     # ------------------------------------------------------------------ batch handling
@@ -107,13 +110,17 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         cfg = self.config
         if not isinstance(batch, Mapping):
             raise ValueError(f"batch: expected a dict of tensors, got {type(batch).__name__}")
-        state = _tensor(batch, "state", f"[B, {cfg.state_dim}]")
-        if state.dim() != 2 or state.shape[1] != cfg.state_dim:
-            raise ValueError(f"batch['state']: expected shape [B, {cfg.state_dim}], got {list(state.shape)}")
+        n = cfg.n_obs_steps
+        want = f"[B, {cfg.state_dim}]" if n == 1 else f"[B, {n}, {cfg.state_dim}] (n_obs_steps={n} observations, oldest first)"
+        state = _tensor(batch, "state", want)
+        if list(state.shape[1:]) != ([cfg.state_dim] if n == 1 else [n, cfg.state_dim]):
+            hint = "" if n == 1 or state.dim() != 2 else "; stack the last observations with history.ObservationHistory"
+            raise ValueError(f"batch['state']: expected shape {want}, got {list(state.shape)}{hint}")
         _finite(state, "state")
         b = state.shape[0]
         if b == 0:
-            raise ValueError(f"batch['state']: expected at least one row [B >= 1, {cfg.state_dim}], got {list(state.shape)}")
+            raise ValueError(f"batch['state']: expected at least one row {want.replace('[B,', '[B >= 1,', 1)}, "
+                             f"got {list(state.shape)}")
         if need_actions:
             shape = [b, cfg.action_chunk_size, cfg.action_dim]
             actions = _tensor(batch, "actions", str(shape))
@@ -163,7 +170,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                              f"config.extra['tasks']) or the batch's vlm_key_values")
 
     def _validate_images(self, batch: Mapping[str, Any], b: int) -> None:
-        """`images` [B, N_cam, 3, S, S]: uint8 (0..255) or floating point in [0, 1], cameras in config order."""
+        """`images` [B, N_cam, 3, S, S] ([B, n, N_cam, 3, S, S] with n_obs_steps n > 1): uint8 (0..255) or
+        floating point in [0, 1], cameras in config order."""
         cfg = self.config
         images = batch.get("images")
         if not cfg.uses_cameras:
@@ -171,11 +179,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                 raise ValueError("batch['images']: this policy has no cameras (DecoderConfig.cameras is empty); "
                                  "drop the images or train a policy with cameras")
             return
-        n, s = len(cfg.cameras), cfg.image_size
-        want = f"[{b}, {n}, 3, {s}, {s}] (batch, cameras {list(cfg.cameras)}, RGB, image_size²), uint8 or float in [0, 1]"
+        n, s, steps = len(cfg.cameras), cfg.image_size, cfg.n_obs_steps
+        lead = [b] if steps == 1 else [b, steps]
+        want = f"{[*lead, n, 3, s, s]} (batch, {'' if steps == 1 else 'observation steps, '}cameras " \
+               f"{list(cfg.cameras)}, RGB, image_size²), uint8 or float in [0, 1]"
         if images is None:
             raise ValueError(f"batch['images']: missing; this policy conditions on cameras; expected a tensor {want}")
-        if not isinstance(images, Tensor) or list(images.shape) != [b, n, 3, s, s] or \
+        if not isinstance(images, Tensor) or list(images.shape) != [*lead, n, 3, s, s] or \
                 not (images.dtype == torch.uint8 or images.is_floating_point()):
             got = f"{list(images.shape)} {images.dtype}" if isinstance(images, Tensor) else type(images).__name__
             raise ValueError(f"batch['images']: expected a tensor {want}, got {got}")
@@ -589,7 +599,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 
         A state whose batch size differs from the queued chunk's re-plans (as after `reset()`):
         the queued rows belong to other environments and cannot be matched to the new ones, and
-        a fresh chunk for the batch at hand is what a caller that changed its batch wants."""
+        a fresh chunk for the batch at hand is what a caller that changed its batch wants.
+
+        With `n_obs_steps` n > 1, a batch of one observation (state [B, state_dim], images [B, N_cam, 3,
+        S, S]) is pushed onto the policy's `history` (`history.ObservationHistory`, every call, also
+        while queued actions remain) and the chunk is sampled from the last n; a batch that already
+        holds n steps is used as it is."""
+        batch = self._with_history(batch)
         if self._queue:
             self._validate(batch, need_actions=False)
             if self._queue[0].shape[0] != batch["state"].shape[0]:
@@ -599,9 +615,19 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
             self._queue.extend(chunk[:, : self.config.n_action_steps].transpose(0, 1))
         return self._queue.popleft()
 
+    def _with_history(self, batch: Mapping[str, Any]) -> Mapping[str, Any]:
+        """`batch` with its single observation stacked onto the last n − 1 (`select_action`)."""
+        state = batch.get("state") if isinstance(batch, Mapping) else None
+        if self.config.n_obs_steps == 1 or not isinstance(state, Tensor) or state.dim() != 2:
+            return batch
+        keys = ["state"] + (["images"] if isinstance(batch.get("images"), Tensor) else [])
+        stacked = self.history.push({k: batch[k] for k in keys})
+        return {**batch, **{k: stacked[k] for k in keys}}
+
     def reset(self) -> None:
-        """Forget queued actions (call at every episode start)."""
+        """Forget queued actions and the observation history (call at every episode start)."""
         self._queue.clear()
+        self.history.reset()
 
     def export_onnx(self, path: str | Path, steps: Optional[int] = None, batch_size: int = 1,
                     sampler: Optional[str] = None, context_length: Optional[int] = -1,

@@ -51,12 +51,12 @@ def input_dim(layout: str, state_dim: int) -> int:
 
 
 def network_state(layout: str, normalized: Tensor, raw: Tensor) -> Tensor:
-    """What the network reads [B, input_dim]: the normalised state [B, S], with the relative positions
+    """What the network reads [..., input_dim]: the normalised state [..., S], with the relative positions
     of the raw [B, 39] state appended ("metaworld"), or only its proprioception ("metaworld_proprio")."""
     if layout == "metaworld":
         return torch.cat([normalized, relative_positions(raw)], dim=-1)
     if layout == "metaworld_proprio":
-        return normalized[:, :PROPRIO_DIM]
+        return normalized[..., :PROPRIO_DIM]
     return normalized
 
 

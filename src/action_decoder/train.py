@@ -82,6 +82,8 @@ class TrainConfig:
     """Largest random shift of a training frame, in pixels (0: none)."""
     augment_shift: Optional[float] = None
     """Largest horizontal shift of the scene per sample, in metres (None: 0.05 with metaworld, else 0)."""
+    n_obs_steps: int = DecoderConfig.n_obs_steps
+    """Observations the policy conditions on: the current one and the n - 1 before it (stored in the checkpoint)."""
     horizon: int = 16
     """Action chunk length H, in control steps."""
     n_action_steps: int = DecoderConfig.n_action_steps
@@ -189,7 +191,7 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
         episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg), cameras=cfg.cameras,
                               image_size=cfg.image_size)
         _say_cameras(episodes, quiet)
-        return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks), None
+        return ChunkDataset(episodes, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks), None
     cameras = None if cfg.cameras is None else [c for item in cfg.cameras for c in item.split(",") if c]
     episodes = load_dataset(cfg.dataset, cameras, cfg.image_size)
     _say_cameras(episodes, quiet)
@@ -201,12 +203,13 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
               f"\"env\"), and holding out episodes needs >= 2 of them and --val-fraction > 0 (got {n} and "
               f"{cfg.val_fraction})", flush=True)
     if not held:
-        return ChunkDataset(episodes, cfg.horizon), list(episodes.tasks), None
+        return ChunkDataset(episodes, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks), None
     train_eps, val_eps = episodes.select(n - held), episodes.select(list(range(n - held, n)))
     if not quiet:
         print(f"validation: holding out the last {held} of {n} episodes (ids {val_eps.episode_ids.tolist()}; "
               f"--val-fraction {cfg.val_fraction}); training on {n - held}", flush=True)
-    return ChunkDataset(train_eps, cfg.horizon), list(episodes.tasks), ChunkDataset(val_eps, cfg.horizon)
+    return (ChunkDataset(train_eps, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks),
+            ChunkDataset(val_eps, cfg.horizon, n_obs_steps=cfg.n_obs_steps))
 
 
 def _say_cameras(episodes, quiet: bool) -> None:
@@ -334,7 +337,8 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
     k = cfg.inference_steps or DEFAULT_STEPS[cfg.decoder]
     return DecoderConfig(state_layout=state_layout(cfg), **camera_fields(cfg, images),
         decoder_type=cfg.decoder, prediction_type=cfg.prediction_type, num_inference_timesteps=k,
-        action_chunk_size=cfg.horizon, n_action_steps=cfg.n_action_steps, clip_actions=cfg.clip_actions,
+        action_chunk_size=cfg.horizon, n_obs_steps=cfg.n_obs_steps, n_action_steps=cfg.n_action_steps,
+        clip_actions=cfg.clip_actions,
         state_dim=state_dim,
         action_dim=action_dim, hidden_size=cfg.hidden_size, num_hidden_layers=cfg.num_layers,
         num_attention_heads=cfg.num_heads, num_key_value_heads=cfg.num_kv_heads,
@@ -359,14 +363,17 @@ def observation_layout(cfg: TrainConfig) -> Optional[str]:
 def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: float = 0.0,
            generator: Optional[torch.Generator] = None) -> dict:
     items = default_collate([ds[int(i)] for i in idx])
-    state = items["state"]                                                 # [B, S]
+    state = items["state"]                                                 # [B, S] or [B, n, S]
     if shift > 0:
         offset = (2 * torch.rand(len(state), 2, generator=generator) - 1) * shift   # [B, 2] metres
-        state = shift_positions(state, offset)
+        if state.dim() == 3:                # one shift per sample, the same at each of its observation steps
+            state = shift_positions(state.flatten(0, 1), offset.repeat_interleave(state.shape[1], 0)).view_as(state)
+        else:
+            state = shift_positions(state, offset)
     batch = {"state": state.to(device), "actions": items["actions"].to(device)}
     batch.update({k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()})
     if "images" in items:
-        batch["images"] = items["images"].to(device)                       # [B, N_cam, 3, S, S] uint8
+        batch["images"] = items["images"].to(device)                       # [B, (n,) N_cam, 3, S, S] uint8
     return batch
 
 
@@ -478,8 +485,8 @@ def plot_losses(history: list, path: Path, title: str) -> None:
 
 # ---------------------------------------------------------------------- the loop
 def _check(cfg: TrainConfig) -> None:
-    for name in ("steps", "demos", "batch_size", "horizon", "n_action_steps", "checkpoint_every", "log_every",
-                 "image_size"):
+    for name in ("steps", "demos", "batch_size", "horizon", "n_obs_steps", "n_action_steps", "checkpoint_every",
+                 "log_every", "image_size"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(cfg, name)}")
     if cfg.rtc_max_delay and cfg.decoder == "DDPM":

@@ -114,9 +114,9 @@ class ActionDecoderConfig(PreTrainedConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.n_obs_steps != 1:
-            raise ValueError(f"policy.n_obs_steps: expected 1 (the decoder reads the current state), "
-                             f"got {self.n_obs_steps}")
+        if isinstance(self.n_obs_steps, bool) or not isinstance(self.n_obs_steps, int) or self.n_obs_steps < 1:
+            raise ValueError(f"policy.n_obs_steps: expected a positive integer number of observations (the current "
+                             f"one and those before it), got {self.n_obs_steps!r}")
         visual = self.normalization_mapping.get("VISUAL", NormalizationMode.IDENTITY)
         if visual != NormalizationMode.IDENTITY:
             raise ValueError(f"policy.normalization_mapping: expected VISUAL: IDENTITY (the image encoder takes "
@@ -137,8 +137,10 @@ class ActionDecoderConfig(PreTrainedConfig):
         feature_dims(self.input_features, self.output_features)
 
     @property
-    def observation_delta_indices(self) -> None:
-        return None                                         # the current frame only: state [B, S]
+    def observation_delta_indices(self) -> list[int] | None:
+        if self.n_obs_steps == 1:
+            return None                                     # the current frame only: state [B, S]
+        return list(range(1 - self.n_obs_steps, 1))         # the last n frames: state [B, n, S], frames [B, n, 3, H, W]
 
     @property
     def action_delta_indices(self) -> list[int]:

@@ -123,18 +123,25 @@ def hold_last_action(actions: Tensor, is_pad: Optional[Tensor]) -> Tensor:
     return torch.where(real[..., None], actions, held)
 
 
-def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: int, batch_size: int) -> Tensor:
+def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: int, batch_size: int,
+                 n_obs_steps: Optional[int] = None) -> Tensor:
     """LeRobot camera frames `batch[key]` [B, 3, H, W] (or [B, 1, 3, H, W]) float in [0, 1] → `images`
-    [B, N_cam, 3, S, S], stacked in `cameras` order, resized (bilinear, antialiased) to S = `image_size`."""
+    [B, N_cam, 3, S, S], stacked in `cameras` order, resized (bilinear, antialiased) to S = `image_size`.
+    `n_obs_steps` n (observation history, `observation_delta_indices`): frames [B, n, 3, H, W] → images
+    [B, n, N_cam, 3, S, S]."""
     frames = []
     for key in cameras:
         x = batch.get(key)
-        if isinstance(x, Tensor) and x.dim() == 5 and x.shape[1] == 1:
+        if isinstance(x, Tensor) and x.dim() == 5 and x.shape[1] == 1 and n_obs_steps is None:
             x = x[:, 0]                                                                   # [B, 1, 3, H, W] -> [B, 3, H, W]
-        if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[0] != batch_size or x.shape[1] != 3:
+        lead = [batch_size] if n_obs_steps is None else [batch_size, n_obs_steps]
+        if not isinstance(x, Tensor) or list(x.shape[:len(lead)]) != lead or x.dim() != len(lead) + 3 \
+                or x.shape[len(lead)] != 3:
             got = list(x.shape) if isinstance(x, Tensor) else ("nothing" if x is None else type(x).__name__)
-            raise ValueError(f"batch[{key!r}]: expected camera frames of shape [{batch_size}, 3, H, W] (float in "
-                             f"[0, 1]), got {got}")
+            raise ValueError(f"batch[{key!r}]: expected camera frames of shape [{', '.join(map(str, lead))}, 3, H, W] "
+                             f"(float in [0, 1]), got {got}")
+        if n_obs_steps is not None:
+            x = x.flatten(0, 1)                                                           # [B·n, 3, H, W]
         x = x.float() / 255.0 if not x.is_floating_point() else x.float()
         low, high = float(x.min()), float(x.max())
         if not (0.0 <= low and high <= 1.0):              # NaN fails too
@@ -143,8 +150,8 @@ def camera_batch(batch: Mapping[str, Any], cameras: Sequence[str], image_size: i
         if tuple(x.shape[-2:]) != (image_size, image_size):
             x = F.interpolate(x, size=(image_size, image_size), mode="bilinear", antialias=True,
                               align_corners=False).clamp(0.0, 1.0)
-        frames.append(x)
-    return torch.stack(frames, dim=1)                                                     # [B, N_cam, 3, S, S]
+        frames.append(x if n_obs_steps is None else x.view(*lead, *x.shape[1:]))
+    return torch.stack(frames, dim=len(lead))                                             # [B, (n,) N_cam, 3, S, S]
 
 
 def _finite_float(x: Tensor, key: str) -> None:
@@ -157,18 +164,26 @@ def _finite_float(x: Tensor, key: str) -> None:
 
 def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int,
                   with_actions: bool, cameras: Sequence[str] = (), image_size: int = 64,
-                  action_shape: Optional[tuple[int, int]] = None) -> dict:
+                  action_shape: Optional[tuple[int, int]] = None, n_obs_steps: int = 1) -> dict:
     """LeRobot batch → core batch: `state` [B, S], `actions` [B, H, D] (padding held at the last
     real action) when `with_actions`, `images` [B, N_cam, 3, S, S] for a camera policy
     (`camera_batch`), and the task token `context` [B, 1, T] for multi-task. `action_shape` (H, D)
-    checks the chunk's shape here, naming LeRobot's key."""
+    checks the chunk's shape here, naming LeRobot's key. With `n_obs_steps` n > 1 a batch of the
+    dataset's observation history (`observation.state` [B, n, S], frames [B, n, 3, H, W]) keeps its
+    step axis (`state` [B, n, S], `images` [B, n, N_cam, 3, S, S]); a batch of one observation (the
+    environment's, in `select_action`) stays one, for the core policy's history to stack."""
     state = batch.get(STATE)
     if not isinstance(state, Tensor):
         raise ValueError(f"batch[{STATE!r}]: missing; expected a tensor of shape [B, {state_dim}], got "
                          f"{type(state).__name__} (keys {sorted(batch)})")
-    if state.dim() == 3 and state.shape[1] == 1:
+    stacked = n_obs_steps > 1 and state.dim() == 3 and state.shape[1] != 1
+    if stacked:
+        if list(state.shape[1:]) != [n_obs_steps, state_dim]:
+            raise ValueError(f"batch[{STATE!r}]: expected shape [B, {state_dim}] or [B, {n_obs_steps}, {state_dim}] "
+                             f"(n_obs_steps={n_obs_steps}), got {list(state.shape)}")
+    elif state.dim() == 3 and state.shape[1] == 1:
         state = state[:, 0]                                                               # [B, 1, S] -> [B, S]
-    if state.dim() != 2 or state.shape[1] != state_dim:
+    if not stacked and (state.dim() != 2 or state.shape[1] != state_dim):
         raise ValueError(f"batch[{STATE!r}]: expected shape [B, {state_dim}], got {list(state.shape)}")
     _finite_float(state, STATE)
     out = {"state": state}
@@ -185,7 +200,7 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
         _finite_float(actions, ACTION)
         out["actions"] = hold_last_action(actions, batch.get(PAD))
     if cameras:
-        out["images"] = camera_batch(batch, cameras, image_size, state.shape[0])
+        out["images"] = camera_batch(batch, cameras, image_size, state.shape[0], n_obs_steps if stacked else None)
     context = task_token(batch.get(TASK), tasks, state.shape[0], state.device)
     if context is not None:
         out["context"] = context

@@ -75,7 +75,7 @@ class ActionDecoderPolicy(PreTrainedPolicy):
 
     def _core(self, batch: dict[str, Any], with_actions: bool) -> dict:
         return to_core_batch(batch, self.config.tasks, self.state_dim, with_actions, self.cameras,
-                             self.config.image_size, self.action_shape)
+                             self.config.image_size, self.action_shape, self.config.n_obs_steps)
 
     def get_optim_params(self) -> list:
         return [p for p in self.parameters() if p.requires_grad]
@@ -111,7 +111,9 @@ class ActionDecoderPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Any], generator=None, **kwargs: Any) -> Tensor:
-        """One normalised action [B, D]; a chunk is sampled every `n_action_steps` calls."""
+        """One normalised action [B, D]; a chunk is sampled every `n_action_steps` calls. With `n_obs_steps`
+        n > 1 every call's observation joins the core policy's history (its first one repeated at an
+        episode's start, as LeRobot's observation queues; `reset()` starts it anew)."""
         if kwargs.get("noise") is not None:
             raise ValueError("noise: select_action samples its own chunks; pass noise to predict_action_chunk")
         return self.decoder.select_action(self._core(batch, with_actions=False), generator=generator)

@@ -4,6 +4,10 @@ Near an episode's end the chunk is completed by repeating the last action and ma
 ``action_is_pad`` (LeRobot's convention), so every frame is a training sample and the
 loss can ignore, or keep, the padded part. A dataset that stores each frame's own
 continuation (demonstrations recorded with noise) gives its first H actions instead.
+
+With observation history (``n_obs_steps`` n > 1) each sample holds the frame's observation and the
+n − 1 before it, as LeRobot's ``observation_delta_indices`` = range(1 − n, 1) gives them: before an
+episode's first frame that frame is repeated, and ``observation_is_pad`` marks the repeats.
 """
 
 from __future__ import annotations
@@ -20,15 +24,22 @@ from .episodes import CONTINUATION, EpisodeDataset
 class ChunkDataset(Dataset):
     """``{"state": [S], "actions": [H, D], "action_is_pad": [H] bool, "task_index": int}`` per frame,
     and ``"images"``: uint8 ``[N_cam, 3, H_img, W_img]`` (channel-first, cameras in the dataset's
-    order) of the frame the chunk starts at, when the dataset has cameras.
+    order) of the frame the chunk starts at, when the dataset has cameras. With ``n_obs_steps`` n > 1
+    the observations gain a step axis, oldest first: ``"state": [n, S]``, ``"images": [n, N_cam, 3,
+    H_img, W_img]``, and ``"observation_is_pad": [n] bool`` (True: the episode's first frame standing in
+    for a frame before it).
 
     ``episodes`` keeps the first k episodes (an int) or those at given positions, e.g. for
     demo-count experiments; for several tasks pass ``concat_datasets([...])``.
     """
 
-    def __init__(self, dataset: EpisodeDataset, horizon: int, episodes: int | Sequence[int] | None = None):
+    def __init__(self, dataset: EpisodeDataset, horizon: int, episodes: int | Sequence[int] | None = None,
+                 n_obs_steps: int = 1):
         if not isinstance(horizon, (int, np.integer)) or horizon < 1:
             raise ValueError(f"horizon: expected an integer >= 1, got {horizon!r}")
+        if isinstance(n_obs_steps, bool) or not isinstance(n_obs_steps, (int, np.integer)) or n_obs_steps < 1:
+            raise ValueError(f"n_obs_steps: expected an integer >= 1 (observations per sample), got {n_obs_steps!r}")
+        self.n_obs_steps = int(n_obs_steps)
         if episodes is not None:
             dataset = dataset.select(episodes)
         self.dataset, self.horizon = dataset, int(horizon)
@@ -44,6 +55,8 @@ class ChunkDataset(Dataset):
         self.task_index = dataset.task_index.tolist()
         ends = dataset.episode_starts + dataset.episode_lengths - 1
         self.last_frame = torch.from_numpy(np.repeat(ends, dataset.episode_lengths))
+        self.first_frame = torch.from_numpy(np.repeat(dataset.episode_starts, dataset.episode_lengths))
+        self.obs_offsets = torch.arange(1 - self.n_obs_steps, 1)                  # [n]: LeRobot's delta indices
         self.offsets = torch.arange(self.horizon)
 
     @property
@@ -69,6 +82,13 @@ class ChunkDataset(Dataset):
             last = self.last_frame[i]
             item = {"state": self.states[i], "actions": self.actions[torch.clamp(wanted, max=last)],
                     "action_is_pad": wanted > last, "task_index": self.task_index[i]}
+        if self.n_obs_steps > 1:
+            wanted = i + self.obs_offsets                                         # [n]
+            frames = torch.clamp(wanted, min=self.first_frame[i])
+            item["state"], item["observation_is_pad"] = self.states[frames], wanted < self.first_frame[i]  # [n, S], [n]
+            if self.images:
+                item["images"] = torch.stack([cam[frames] for cam in self.images], 1).permute(0, 1, 4, 2, 3)
+            return item                                                           # images [n, N_cam, 3, H, W]
         if self.images:
             item["images"] = torch.stack([frames[i] for frames in self.images]).permute(0, 3, 1, 2)  # [N_cam, 3, H, W]
         return item

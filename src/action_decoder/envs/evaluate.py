@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..history import ObservationHistory
 from .metaworld_tasks import MAX_EPISODE_STEPS, SeededLayoutEnv, canonical_task, eval_seeds, make_env
 
 _idle_envs: dict[str, list[SeededLayoutEnv]] = {}
@@ -31,7 +32,9 @@ It may also take keywords ``episode_seeds [B]`` (each row's episode seed) and ``
 ``rtc=True`` it must take ``prev_chunks [B, L, D]`` and ``delay`` (real-time chunking): the rows
 that continue an episode are then planned in their own call, given the previous chunk's actions
 for the new chunk's steps 0..L−1. With a ``camera_rig`` it must take ``images`` [B, N_cam, 3, S, S]
-uint8: each planning row's env rendered at the observation it plans from, cameras in the rig's order."""
+uint8: each planning row's env rendered at the observation it plans from, cameras in the rig's order.
+With ``n_obs_steps`` n > 1 it is given each row's last n observations, oldest first: ``states [B, n, S]``
+and ``images [B, n, N_cam, 3, S, S]`` (an episode's first observation standing in for those before it)."""
 
 
 def _takes_episode_keys(policy_fn: PolicyFn) -> bool:
@@ -105,6 +108,7 @@ def evaluate(
     delay: int = 0,
     rtc: bool = False,
     camera_rig: Callable[[SeededLayoutEnv], dict] | None = None,
+    n_obs_steps: int = 1,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
@@ -123,6 +127,9 @@ def evaluate(
     called after each finished episode: ``done`` finished so far, ``episode`` its index in [0, total).
     ``camera_rig(env) -> {camera: frame [S, S, 3] uint8}`` (``envs.render.CameraObservation``; one
     rig serves every env) renders the observation of each row that plans, passed as ``images``.
+    ``n_obs_steps`` n > 1 stacks each env's last n observations (`history.ObservationHistory`, reset
+    at each episode start, where the first observation is repeated); the rig then renders the n
+    observations up to each plan.
     ``record=True`` adds ``trajectories``: per episode the hand positions ``[T, 3]`` (obs[0:3]) and
     the goal (obs[36:39]). ``on_step(episode, env)`` is called after each reset and after each step
     of an episode, before the next reset of its env (``envs.render.EpisodeCamera`` films episodes so).
@@ -134,7 +141,8 @@ def evaluate(
     ``episode_boundary_jerk`` (each episode's own mean, None without a switch).
     """
     name = canonical_task(task)
-    for arg, value, low in (("episodes", episodes, 1), ("n_action_steps", n_action_steps, 1), ("num_envs", num_envs, 1)):
+    for arg, value, low in (("episodes", episodes, 1), ("n_action_steps", n_action_steps, 1), ("num_envs", num_envs, 1),
+                            ("n_obs_steps", n_obs_steps, 1)):
         if not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{arg}: expected an integer >= {low}, got {value!r}")
     if not isinstance(max_steps, (int, np.integer)) or not 1 <= max_steps <= MAX_EPISODE_STEPS:
@@ -163,12 +171,26 @@ def evaluate(
     switches: list[list[int]] = [[] for _ in range(episodes)]   # step index of each new chunk's first action
     keyed = _takes_episode_keys(policy_fn)
     next_episode, finished, start = 0, 0, time.perf_counter()
+    stacking = n_obs_steps > 1
+    history = [ObservationHistory(n_obs_steps) for _ in envs] if stacking else []
+    stacked: list[dict] = [{} for _ in envs]       # each slot's last n observations, [1, n, ...] per key
+
+    def observe(slot: int) -> None:
+        """Push the slot's observation (and its rendered frames, from n steps before its next plan on)."""
+        if not stacking:
+            return
+        stacked[slot].update(history[slot].push({"state": obs[slot][None]}))
+        if camera_rig is not None and (plans[slot] is None or len(plans[slot]) - delay < n_obs_steps):
+            stacked[slot].update(history[slot].push({"images": camera_images(camera_rig(envs[slot]))[None]}))
 
     def begin(slot: int) -> None:
         nonlocal next_episode
         slot_episode[slot], plans[slot], chunks[slot] = -1, None, None
         if next_episode < episodes:
             obs[slot] = envs[slot].reset(seed=seeds[next_episode])[0]
+            if stacking:
+                history[slot].reset()
+                observe(slot)
             if record:
                 hands[next_episode].append(obs[slot][:3].copy())
                 goals[next_episode] = obs[slot][36:39].copy()
@@ -191,9 +213,13 @@ def evaluate(
                     "plan_indices": np.array([plan_count[e] for e in eps_now], dtype=np.int64)} if keyed else {}
             if rtc and group is later:
                 keys.update(prev_chunks=np.stack([chunks[s][n_action_steps:] for s in group]), delay=int(delay))
+            states = obs[group]                                                     # [B, S]
+            if stacking:
+                states = np.concatenate([stacked[s]["state"] for s in group])          # [B, n, S]
             if camera_rig is not None:
-                keys["images"] = np.stack([camera_images(camera_rig(envs[s])) for s in group])   # [B, N, 3, S, S]
-            for s, chunk in zip(group, _plan(policy_fn, obs[group], task_index, n_action_steps + delay, keys)):
+                keys["images"] = np.concatenate([stacked[s]["images"] for s in group]) if stacking else \
+                    np.stack([camera_images(camera_rig(envs[s])) for s in group])       # [B, (n,) N, 3, S, S]
+            for s, chunk in zip(group, _plan(policy_fn, states, task_index, n_action_steps + delay, keys)):
                 if plans[s] is None:                          # an episode's first chunk: planned before it moves
                     plans[s] = chunk[: n_action_steps + delay]
                 else:                                         # takes over after the d queued old actions
@@ -206,6 +232,7 @@ def evaluate(
             ep, action, plans[s] = slot_episode[s], plans[s][0], plans[s][1:]
             executed[ep].append(action)
             obs[s], reward, _, _, info = envs[s].step(action)
+            observe(s)
             lengths[ep] += 1
             if record:
                 hands[ep].append(obs[s][:3].copy())

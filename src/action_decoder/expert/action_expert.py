@@ -1,6 +1,10 @@
 """The Action Expert (GO-1 style): a small transformer over [t, r, f, state, a_1..a_H] that
 attends bidirectionally to its own tokens and to a conditioning prefix.
 
+With observation history (`n_obs_steps` n > 1) the one state token becomes n, oldest first, each
+with a learned step embedding, [t, r, f, s_1..s_n, a_1..a_H], and every frame's camera tokens join
+the prefix with a step embedding of their own; n = 1 has neither embedding (the network as before).
+
 The head's output is whatever the decoder trains it to be (velocity, MeanFlow average
 velocity, DDPM ε or x0); the network does not know which.
 """
@@ -43,6 +47,11 @@ class ActionExpert(nn.Module):
         self.r_embed = ScalarEmbedding(hidden, TIME_PERIODS)
         self.freq_embed = ScalarEmbedding(hidden, FREQ_PERIODS)
         self.state_in = nn.Linear(config.state_input_dim, hidden)
+        n_obs = config.n_obs_steps
+        # [n, hidden]: which observation step a state token (and a frame's camera tokens) comes from.
+        self.obs_step_embed = nn.Parameter(torch.randn(n_obs, hidden) * 0.02) if n_obs > 1 else None
+        self.image_step_embed = nn.Parameter(torch.randn(n_obs, hidden) * 0.02) \
+            if n_obs > 1 and config.uses_cameras else None
         self.action_in = nn.Linear(config.action_dim, hidden)
         self.conditioning = ConditioningEncoder(config)
         # Camera frames → tokens of the prefix (`load_pretrained`: read image_encoder_pretrained now).
@@ -80,19 +89,27 @@ class ActionExpert(nn.Module):
                      vlm_key_values: Any = None, attention_mask: Optional[Tensor] = None,
                      images: Optional[Tensor] = None) -> Optional[Prefix]:
         """Encode and project the conditioning once per observation; pass the result to every forward.
-        `images` [B, N_cam, 3, S, S] (uint8, or float in [0, 1]) go through the image encoder."""
+        `images` [B, N_cam, 3, S, S] (uint8, or float in [0, 1]) go through the image encoder; with
+        `n_obs_steps` n > 1 they are [B, n, N_cam, 3, S, S], each frame encoded on its own."""
         tokens = None
         if images is not None:
             if self.image_encoder is None:
                 raise ValueError("images: this expert was built without cameras; set DecoderConfig.cameras")
-            tokens = self.image_encoder(images)                                   # [B, N_cam·T, hidden]
+            if self.image_step_embed is None:
+                tokens = self.image_encoder(images)                               # [B, N_cam·T, hidden]
+            else:
+                b, n = images.shape[:2]
+                tokens = self.image_encoder(images.flatten(0, 1))                 # [B·n, N_cam·T, hidden]
+                tokens = tokens.view(b, n, *tokens.shape[1:]) + self.image_step_embed[:, None]
+                tokens = tokens.flatten(1, 2)                                     # [B, n·N_cam·T, hidden]
         return self.conditioning(context, context_mask, vlm_key_values, attention_mask, tokens)
 
     def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
                 ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:
         """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow), or per
         action token [B, H] (training-time real-time chunking: the committed rows at t = r = 1);
-        state [B, state_input_dim] (normalised, with the layout's features); ctrl_freq [B] Hz
+        state [B, state_input_dim] (normalised, with the layout's features), or [B, n, state_input_dim]
+        with `n_obs_steps` n > 1 (oldest first); ctrl_freq [B] Hz
         (None: config.default_ctrl_freq).
 
         Per-token times: the t and r tokens carry the earliest time of each sample (the rows
@@ -114,11 +131,16 @@ class ActionExpert(nn.Module):
             t_tok, t_off = self._token_times(self.t_embed, t, b, horizon)
             r_tok, r_off = self._token_times(self.r_embed, r, b, horizon)
             actions = actions + (t_off + r_off)
-        tokens = torch.cat([
-            torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq),
-                         self.state_in(state.to(dtype))], dim=1),                 # [B, 4, hidden]
-            actions,                                                              # [B, H, hidden]
-        ], dim=1)                                                                 # [B, N, hidden]
+        if self.obs_step_embed is None:
+            tokens = torch.cat([
+                torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq),
+                             self.state_in(state.to(dtype))], dim=1),             # [B, 4, hidden]
+                actions,                                                          # [B, H, hidden]
+            ], dim=1)                                                             # [B, N, hidden]
+        else:
+            states = self.state_in(state.to(dtype)) + self.obs_step_embed.to(dtype)  # [B, n, hidden]
+            tokens = torch.cat([torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq)], dim=1),   # [B, 3, hidden]
+                                states, actions], dim=1)                          # [B, 3 + n + H, hidden]
         n = tokens.shape[1]
         cos, sin = rotary_cos_sin(n, self.head_dim, self.config.rope_theta, x.device, dtype)
         mask = None  # own tokens always see each other; only prefix keys may be masked
@@ -137,8 +159,9 @@ class ActionExpert(nn.Module):
         if x.dim() != 3 or x.shape[-1] != cfg.action_dim:
             raise ValueError(f"x: expected shape [B, H, {cfg.action_dim}], got {list(x.shape)}")
         b = x.shape[0]
-        if tuple(state.shape) != (b, cfg.state_input_dim):
-            raise ValueError(f"state: expected shape [{b}, {cfg.state_input_dim}], got {list(state.shape)}")
+        want = (b, cfg.state_input_dim) if cfg.n_obs_steps == 1 else (b, cfg.n_obs_steps, cfg.state_input_dim)
+        if tuple(state.shape) != want:
+            raise ValueError(f"state: expected shape {list(want)}, got {list(state.shape)}")
         if prefix is not None:
             if prefix.batch_size != b:
                 raise ValueError(f"prefix: expected batch size {b}, got {prefix.batch_size}")

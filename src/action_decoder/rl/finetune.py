@@ -427,6 +427,10 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
 
     out = Path(cfg.output_dir)
     bc = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
+    if bc.config.n_obs_steps > 1:
+        raise ValueError(f"--checkpoint: RL fine-tuning rolls out and re-scores chunks from one observation each; "
+                         f"{cfg.checkpoint} conditions on the last {bc.config.n_obs_steps} (n_obs_steps); fine-tune a "
+                         f"policy trained with --n-obs-steps 1")
     trained = list(bc.config.extra.get("tasks") or [])
     num_tasks = max(len(trained), 1)
     torch.manual_seed(cfg.seed)
