@@ -150,3 +150,13 @@ def test_checkpoints_of_other_policies_are_refused_in_one_line(tmp_path):
         load_checkpoint(str(tmp_path / "act"))
     with pytest.raises(ValueError, match="has no config.json"):
         load_checkpoint(str(tmp_path))
+
+
+def test_checkpoints_with_observation_history_are_refused_in_one_line(tmp_path):
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+    from lerobot_policy_action_decoder.serve import load_checkpoint
+
+    ActionDecoderPolicy(DecoderConfig(state_dim=6, action_dim=2, hidden_size=32, num_hidden_layers=1,
+                                      n_obs_steps=2)).save_pretrained(tmp_path / "hist")
+    with pytest.raises(ValueError, match="conditions on n_obs_steps=2 consecutive observations"):
+        load_checkpoint(str(tmp_path / "hist"))

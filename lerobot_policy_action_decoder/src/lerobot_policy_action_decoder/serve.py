@@ -89,12 +89,16 @@ def load_checkpoint(name: str) -> Served:
     except json.JSONDecodeError as err:
         raise ValueError(f"--checkpoint: {config} is not JSON ({err})") from None
     kind = meta.get("type")
-    if kind == POLICY_TYPE:
-        return _load_lerobot(path)
-    if kind is not None:
+    if kind is not None and kind != POLICY_TYPE:
         raise ValueError(f"--checkpoint: {path} is a LeRobot checkpoint of policy type {kind!r}; this server serves "
                          f"{POLICY_TYPE!r} checkpoints (LeRobot's own policy_server serves {kind!r})")
-    return _load_library(path)
+    served = _load_lerobot(path) if kind == POLICY_TYPE else _load_library(path)
+    n_obs = served.core.config.n_obs_steps
+    if n_obs > 1:
+        raise ValueError(f"--checkpoint: {path} conditions on n_obs_steps={n_obs} consecutive observations, and "
+                         f"LeRobot's RobotClient sends an observation only when its action queue runs low; "
+                         f"serve checkpoints trained with n_obs_steps=1")
+    return served
 
 
 def _load_library(path: Path) -> Served:
