@@ -23,6 +23,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Generic, Optional, TypeVar
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -342,6 +343,8 @@ def test_lerobot_06_rtc_call_commits_the_left_over_and_returns_a_chunk(lr06, dec
     chunk = policy.predict_action_chunk(obs, noise=noise, inference_delay=2, prev_chunk_left_over=left)
     assert chunk.shape == (1, 8, 3) and torch.isfinite(chunk).all()
     assert torch.equal(chunk[0, :2], left[:2])                # the actions executed while sampling are the left-over's
+    again = policy.predict_action_chunk(obs, noise=noise, inference_delay=np.int64(2), prev_chunk_left_over=left)
+    assert torch.equal(again, chunk)                          # a NumPy integer delay is a delay too
     plain = policy.predict_action_chunk(obs, noise=noise)
     assert not torch.allclose(chunk[0, 2:6], plain[0, 2:6])   # the overlap is guided towards the left-over
     first = policy.predict_action_chunk(obs, noise=noise, inference_delay=3, prev_chunk_left_over=None)

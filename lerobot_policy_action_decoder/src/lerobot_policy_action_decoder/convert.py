@@ -13,6 +13,7 @@ and schedule).
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Mapping, Optional, Sequence
 
 import torch
@@ -224,7 +225,7 @@ def rtc_prefix(prev_chunk_left_over: Any, inference_delay: Any, batch_size: int,
     `horizon`) steps guide the new chunk. `inference_delay` is how many control steps run while the
     chunk is sampled; the actions committed in that time come from the left-over, so the delay is
     at most L. Without a left-over (the first chunk) nothing is committed: (None, 0)."""
-    if isinstance(inference_delay, bool) or not isinstance(inference_delay, (int, type(None))) \
+    if isinstance(inference_delay, bool) or not isinstance(inference_delay, (numbers.Integral, type(None))) \
             or (inference_delay or 0) < 0:
         raise ValueError(f"inference_delay: expected a non-negative integer number of control steps, "
                          f"got {inference_delay!r}")
