@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# LeRobot interop, end to end, in a virtual environment with lerobot==0.4.4 and this repository.
+# LeRobot interop, end to end, in a virtual environment with LeRobot (0.4.4 or 0.6.x) and this repository.
 #
 #   scripts/lerobot_integration.sh            # builds (or reuses) the venv, then runs every step
 #   LEROBOT_VENV=/path/to/venv WORK_DIR=/tmp/x scripts/lerobot_integration.sh
+#   LEROBOT_VERSION=0.6.1 LEROBOT_PYTHON=python3.12 LEROBOT_VENV=.cache/lerobot06-venv scripts/lerobot_integration.sh
+#
+# A new venv gets lerobot==$LEROBOT_VERSION (0.4.4) under $LEROBOT_PYTHON (python3; LeRobot >= 0.5
+# needs Python >= 3.12); a venv that already has LeRobot keeps the version it has.
 #
 # Steps: (a) write a dataset with LeRobot's API; (b) `action-decoder train --dataset` on it;
 # (c) `action-decoder record` a Meta-World dataset and load it with `LeRobotDataset`;
@@ -18,7 +22,7 @@
 # policy trained by `lerobot-train` on `record --layout lerobot --cameras corner2` data and
 # evaluated by `lerobot-eval` (its success is reported). One summary line per step (ok/FAILED);
 # exit 1 if any step failed. Building the venv takes about 5 minutes and 8.7 GB (LeRobot
-# brings its own torch < 2.11). Steps a-f take a few minutes on a CPU; g and h render LeRobot's
+# brings its own torch: < 2.11 for 0.4.4, < 2.12 for 0.6.1). Steps a-f take a few minutes on a CPU; g and h render LeRobot's
 # 480-px camera at every step (about 0.6 s a frame on a CPU): tens of minutes. Nothing is pushed.
 #   MW_TASK (door-close), MW_EPISODES (10), MW_DEMOS (10), MW_TRAIN_STEPS (800): step g;
 #   CAM_DEMOS (5), CAM_STEPS (200), CAM_EPISODES (2): step h; LEROBOT_SKIP_CLOSED_LOOP=1 skips g and h.
@@ -52,8 +56,13 @@ step() {  # step NAME COMMAND...: run, log to $WORK/logs/NAME.log, record one su
 
 setup_venv() {
   if ! "$PY" -c "import lerobot" 2>/dev/null; then
-    python3 -m venv "$VENV" && "$VENV/bin/pip" install "lerobot==0.4.4" || return 1
+    "${LEROBOT_PYTHON:-python3}" -m venv "$VENV" && "$VENV/bin/pip" install "lerobot==${LEROBOT_VERSION:-0.4.4}" || return 1
   fi
+  # The installed LeRobot stays; from 0.6 on its dataset reader (datasets, PyAV) and lerobot-train's
+  # accelerate are its `training` extra.
+  local pin
+  pin=$("$PY" -c "import lerobot; from packaging.version import Version as V; v = lerobot.__version__; \
+print(f'lerobot[training]=={v}' if V(v) >= V('0.6') else f'lerobot=={v}')") || return 1
   # The core and the plugin without their dependencies (the venv's torch stays LeRobot's), then
   # the core's other dependencies, resolved together with lerobot's pins and torch held at the
   # installed version (transformers is left out: the core does not import it, and a newer one
@@ -63,16 +72,23 @@ setup_venv() {
   # The core's dependencies are read from its pyproject.toml (all but torch), so this list cannot drift.
   mapfile -t deps < <("$PY" -c "import sys, tomllib, re; deps = tomllib.load(open(sys.argv[1], 'rb'))['project']['dependencies']; \
 print('\n'.join(d for d in deps if re.split('[<>=!~ ;]', d)[0] != 'torch'))" "$REPO/pyproject.toml")
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "${deps[@]}" pytest || return 1
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "$pin" "${deps[@]}" pytest || return 1
   # grpcio for `action-decoder serve` and LeRobot's RobotClient (step i): LeRobot's async extra.
-  "$PY" -c "import grpc" 2>/dev/null || "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot[async]==0.4.4" \
-      || return 1
-  # Meta-World for `action-decoder record` and LeRobot's Meta-World env (steps c, g, h). Not
-  # "lerobot[metaworld]": it brings mujoco 4, with which metaworld 3.0 fails ("could not broadcast").
-  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "lerobot==0.4.4" "metaworld>=3.0" "mujoco>=3.0,<4" \
+  "$PY" -c "import grpc" 2>/dev/null || "$VENV/bin/pip" install -c "$WORK/constraints.txt" \
+      "$("$PY" -c "import lerobot; print(f'lerobot[async]=={lerobot.__version__}')")" || return 1
+  # Meta-World for `action-decoder record` and LeRobot's Meta-World env (steps c, g, h; imageio for the
+  # rendering check of step f). Not "lerobot[metaworld]": it brings mujoco 4, with which metaworld 3.0
+  # fails ("could not broadcast").
+  "$VENV/bin/pip" install -c "$WORK/constraints.txt" "$pin" "metaworld>=3.0" "mujoco>=3.0,<4" "imageio>=2.28" \
+      "imageio_ffmpeg>=0.5.1" \
       || echo "metaworld not installed: steps c, g and h will fail"
   "$PY" -c "import lerobot, torch, action_decoder, lerobot_policy_action_decoder as p; p.ActionDecoderPolicy; \
 print('lerobot', lerobot.__version__, 'torch', torch.__version__)"
+}
+
+no_env_eval() {  # lerobot-train's flag that turns off evaluation in an env: eval_freq (to 0.5), env_eval_freq (0.6 on)
+  "$PY" -c "import dataclasses; from lerobot.configs.train import TrainPipelineConfig as T; \
+print('--env_eval_freq=0' if 'env_eval_freq' in {f.name for f in dataclasses.fields(T)} else '--eval_freq=0')"
 }
 
 write_dataset() {  # (a) 4 episodes, 2 tasks, 6-d state, 3-d action, written by LeRobot's own API
@@ -136,7 +152,7 @@ lerobot_train() {  # (d)
   lerobot-train --policy.type=action_decoder --policy.decoder_type="$1" --policy.device=cpu \
       --policy.push_to_hub=false --dataset.repo_id=local/toy --dataset.root="$WORK/lr_toy" \
       --output_dir="$WORK/lrt_$1" --steps="$STEPS" --batch_size=16 --num_workers=0 --log_freq=10 \
-      --save_freq="$STEPS" --eval_freq=0 --wandb.enable=false
+      --save_freq="$STEPS" "$NO_EVAL" --wandb.enable=false
 }
 
 lerobot_train_ddp() {  # (d') LeRobot's accelerate path with 2 data-parallel processes (gloo on CPU)
@@ -144,7 +160,7 @@ lerobot_train_ddp() {  # (d') LeRobot's accelerate path with 2 data-parallel pro
   torchrun --nproc_per_node 2 -m lerobot.scripts.lerobot_train --policy.type=action_decoder \
       --policy.decoder_type=mean_flow --policy.device=cpu --policy.push_to_hub=false --dataset.repo_id=local/toy \
       --dataset.root="$WORK/lr_toy" --output_dir="$WORK/lrt_ddp" --steps=10 --batch_size=8 --num_workers=0 \
-      --log_freq=5 --save_freq=10 --eval_freq=0 --wandb.enable=false || return 1
+      --log_freq=5 --save_freq=10 "$NO_EVAL" --wandb.enable=false || return 1
   grep -q "effective batch size: 16" "$WORK/logs/d_lerobot_train_ddp_mean_flow.log" || { echo "not data-parallel"; return 1; }
 }
 
@@ -201,7 +217,7 @@ camera_policy_closed_loop() {  # (h) record --layout lerobot --cameras corner2 â
     && lerobot-train --policy.type=action_decoder --policy.device=cpu --policy.push_to_hub=false \
          --dataset.repo_id=local/cam --dataset.root="$WORK/cam_rec" --dataset.video_backend=pyav \
          --output_dir="$WORK/cam_train" --steps="$CAM_STEPS" --batch_size=16 --num_workers=0 --log_freq=50 \
-         --save_freq="$CAM_STEPS" --eval_freq=0 --wandb.enable=false \
+         --save_freq="$CAM_STEPS" "$NO_EVAL" --wandb.enable=false \
     && lerobot-eval --policy.path="$WORK/cam_train/checkpoints/last/pretrained_model" --policy.device=cpu \
          --env.type=metaworld --env.task="$MW_TASK-v3" --eval.n_episodes="$CAM_EPISODES" --eval.batch_size=1 \
          --seed=0 --output_dir="$WORK/cam_eval" || return 1
@@ -211,6 +227,7 @@ camera_policy_closed_loop() {  # (h) record --layout lerobot --cameras corner2 â
 
 step venv setup_venv
 if [ "$FAILED" = 0 ]; then
+  NO_EVAL=$(no_env_eval)
   step a_write_dataset_lerobot_api write_dataset
   step b_action_decoder_train_dataset train_on_dataset
   step c_record_and_load_in_lerobot record_and_load

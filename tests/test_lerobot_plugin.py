@@ -258,7 +258,7 @@ def test_core_policy_learns_from_converted_fixture_batches(decoder, gen):
 def test_plugin_imports_without_lerobot_and_names_what_is_missing():
     import lerobot_policy_action_decoder as plugin
 
-    with pytest.raises(ImportError, match="lerobot==0.4.4"):
+    with pytest.raises(ImportError, match=r"lerobot>=0\.4\.3,<0\.7"):
         plugin.ActionDecoderPolicy
 
 
@@ -498,6 +498,50 @@ def test_lerobot_postprocessor_clamps_to_the_dataset_range_unless_clip_actions_i
     context = torch.nn.functional.one_hot(torch.arange(2), 2).float()[:, None]
     ours = lib.predict_action_chunk({"state": frame["observation.state"], "context": context}, noise=noise)
     torch.testing.assert_close(theirs, ours, atol=1e-4, rtol=1e-4)
+
+
+@lerobot_only
+def test_a_checkpoint_config_with_a_revision_pin_field_loads(toy_root, tmp_path):
+    """LeRobot >= 0.6 writes `pretrained_revision` into config.json; such a checkpoint loads on 0.4.x too."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    policy, _, _, _ = _lerobot_policy(toy_root)
+    policy.save_pretrained(tmp_path / "ckpt")
+    config = json.loads((tmp_path / "ckpt" / "config.json").read_text())
+    config["pretrained_revision"] = None
+    (tmp_path / "ckpt" / "config.json").write_text(json.dumps(config))
+    cfg = PreTrainedConfig.from_pretrained(tmp_path / "ckpt")
+    assert cfg.type == "action_decoder" and cfg.pretrained_revision is None and cfg.tasks == TASKS
+
+
+@lerobot_only
+def test_lerobot_rtc_rollout_engine_drives_the_plugin_through_its_queue(toy_root):
+    """LeRobot 0.6's RTC rollout path without a robot: its acceptance test, its action queue's left-over
+    (zero-padded to the execution horizon as its engine pads it) and the merge after the delay."""
+    engine = pytest.importorskip("lerobot.rollout.inference.rtc", reason="LeRobot < 0.6 has no RTC rollout engine")
+    from lerobot.configs.types import RTCAttentionSchedule
+    from lerobot.policies.rtc import ActionQueue, RTCConfig
+
+    torch.manual_seed(0)
+    policy, pre, post, _ = _lerobot_policy(toy_root, decoder_type="flow_matching")
+    assert engine.supports_rtc_inference(policy.eval())
+    assert not engine.supports_rtc_inference(_lerobot_policy(toy_root, decoder_type="DDPM")[0])
+    rtc = RTCConfig(execution_horizon=6, prefix_attention_schedule=RTCAttentionSchedule.EXP, max_guidance_weight=5.0)
+    policy.config.rtc_config = rtc                                   # what lerobot-rollout sets
+    queue = ActionQueue(rtc)
+    obs = pre({"observation.state": torch.randn(6), "task": "lift the cube"})
+    first = policy.predict_action_chunk(obs, inference_delay=0, prev_chunk_left_over=queue.get_left_over())
+    queue.merge(first.squeeze(0), post(first).squeeze(0), 0, 0)
+    executed = [queue.get() for _ in range(5)]                       # the robot runs 5 of the 8 actions
+    assert all(a.shape == (3,) for a in executed)
+    left = queue.get_left_over()                                     # [3, D], normalised
+    prev = engine._normalize_prev_actions_length(left, target_steps=rtc.execution_horizon)        # [6, D]
+    chunk = policy.predict_action_chunk(obs, inference_delay=2, prev_chunk_left_over=prev)
+    during = [queue.get() for _ in range(2)]                          # the robot goes on while it samples
+    assert chunk.shape == (1, 8, 3) and torch.equal(chunk[0, :2], left[:2])
+    torch.testing.assert_close(torch.stack(during), post(chunk)[0, :2])   # the committed actions, unchanged
+    queue.merge(chunk.squeeze(0), post(chunk).squeeze(0), 2, 5)
+    assert queue.qsize() == 6 and torch.equal(queue.get_left_over(), chunk[0, 2:])
 
 
 LEROBOT_VIEW = """

@@ -10,12 +10,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import lerobot
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import NormalizationMode
 from lerobot.optim.optimizers import AdamWConfig
 from lerobot.optim.schedulers import DiffuserSchedulerConfig
 
 from .convert import decoder_config, feature_dims
+
+
+_LEROBOT_VERSION = getattr(lerobot, "__version__", "unknown")
+_BASE_PINS_REVISION = "pretrained_revision" in PreTrainedConfig.__dataclass_fields__     # LeRobot >= 0.6
 
 
 @PreTrainedConfig.register_subclass("action_decoder")
@@ -105,6 +110,11 @@ class ActionDecoderConfig(PreTrainedConfig):
         }
     )
 
+    # LeRobot >= 0.6 saves a Hub revision pin in every config.json; declared here where LeRobot's base
+    # config lacks it (0.4.x), so checkpoints saved by 0.6+ load there too (0.4.x pins no revision).
+    if not _BASE_PINS_REVISION:
+        pretrained_revision: str | None = None
+
     optimizer_lr: float = 1e-3
     optimizer_betas: tuple[float, float] = (0.9, 0.999)
     optimizer_eps: float = 1e-8
@@ -114,6 +124,9 @@ class ActionDecoderConfig(PreTrainedConfig):
 
     def __post_init__(self):
         super().__post_init__()
+        if not _BASE_PINS_REVISION and self.pretrained_revision is not None:
+            raise ValueError(f"policy.pretrained_revision: LeRobot {_LEROBOT_VERSION} loads no pinned Hub revision "
+                             f"(LeRobot >= 0.6 does); got {self.pretrained_revision!r}, expected null")
         if isinstance(self.n_obs_steps, bool) or not isinstance(self.n_obs_steps, int) or self.n_obs_steps < 1:
             raise ValueError(f"policy.n_obs_steps: expected a positive integer number of observations (the current "
                              f"one and those before it), got {self.n_obs_steps!r}")

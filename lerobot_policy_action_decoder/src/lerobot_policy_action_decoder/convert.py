@@ -5,11 +5,15 @@ LeRobot names a batch `observation.state` [B, S], `action` [B, H, D] with `actio
 (float in [0, 1]); the core policy reads `state`, `actions`, `images` [B, N_cam, 3, S, S] (the
 cameras stacked in the config's order, resized to `image_size`) and, when it was trained on
 several tasks, a one-hot task token `context` [B, 1, T]. `decoder_config` maps the plugin's
-config (any object with its attribute names) to a core `DecoderConfig`.
+config (any object with its attribute names) to a core `DecoderConfig`. `rtc_prefix` and
+`rtc_settings` turn LeRobot's real-time chunking arguments (`inference_delay`,
+`prev_chunk_left_over`, its `RTCConfig`) into the core's (`delay`, `prev_chunk`, guidance weight
+and schedule).
 """
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Mapping, Optional, Sequence
 
 import torch
@@ -17,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from action_decoder import DecoderConfig
-from action_decoder.config import is_camera_key
+from action_decoder.config import RTC_SCHEDULES, is_camera_key
 # The plugin's config fields and their core names: one table, shared with `action-decoder convert`.
 from action_decoder.lerobot_checkpoint import PLUGIN_FIELDS, PLUGIN_FIELDS_ADDED, RENAMED, plugin_core_config  # noqa: F401
 
@@ -205,3 +209,51 @@ def to_core_batch(batch: Mapping[str, Any], tasks: Sequence[str], state_dim: int
     if context is not None:
         out["context"] = context
     return out
+
+
+def rtc_settings(rtc_config: Any) -> Optional[tuple[float, str, int]]:
+    """(guidance weight, schedule, execution horizon) of LeRobot's `RTCConfig` (`max_guidance_weight`,
+    `prefix_attention_schedule` ZEROS | ONES | LINEAR | EXP, `execution_horizon`), which
+    `lerobot-rollout --inference.type=rtc` sets as `policy.config.rtc_config`; None when there is
+    none or it is disabled (the plugin's own `rtc_guidance_weight` and `rtc_schedule` apply)."""
+    if rtc_config is None or not getattr(rtc_config, "enabled", True):
+        return None
+    raw = getattr(rtc_config, "prefix_attention_schedule", None)
+    schedule = str(getattr(raw, "value", raw)).lower()
+    if schedule not in RTC_SCHEDULES:
+        raise ValueError(f"rtc_config.prefix_attention_schedule: expected one of "
+                         f"{[s.upper() for s in RTC_SCHEDULES]}, got {raw!r}")
+    weight, horizon = getattr(rtc_config, "max_guidance_weight", None), getattr(rtc_config, "execution_horizon", None)
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not weight >= 0:
+        raise ValueError(f"rtc_config.max_guidance_weight: expected a number >= 0, got {weight!r}")
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+        raise ValueError(f"rtc_config.execution_horizon: expected a positive number of steps, got {horizon!r}")
+    return float(weight), schedule, horizon
+
+
+def rtc_prefix(prev_chunk_left_over: Any, inference_delay: Any, batch_size: int, chunk_size: int,
+               action_dim: int, horizon: Optional[int] = None) -> tuple[Optional[Tensor], int]:
+    """LeRobot's RTC arguments → the core's (`prev_chunk` [B, L, D], `delay`).
+
+    `prev_chunk_left_over` [T, D] or [B, T, D] is what the previous chunk has not executed yet, in the
+    policy's normalised units, from the new chunk's first step on; its first L = min(T, chunk_size,
+    `horizon`) steps guide the new chunk. `inference_delay` is how many control steps run while the
+    chunk is sampled; the actions committed in that time come from the left-over, so the delay is
+    at most L. Without a left-over (the first chunk) nothing is committed: (None, 0)."""
+    if isinstance(inference_delay, bool) or not isinstance(inference_delay, (numbers.Integral, type(None))) \
+            or (inference_delay or 0) < 0:
+        raise ValueError(f"inference_delay: expected a non-negative integer number of control steps, "
+                         f"got {inference_delay!r}")
+    if prev_chunk_left_over is None:
+        return None, 0
+    prev = prev_chunk_left_over
+    if isinstance(prev, Tensor) and prev.dim() == 2:
+        prev = prev[None].expand(batch_size, -1, -1)                                      # [T, D] -> [B, T, D]
+    if not isinstance(prev, Tensor) or not prev.is_floating_point() or prev.dim() != 3 \
+            or prev.shape[0] != batch_size or prev.shape[2] != action_dim:
+        got = list(prev_chunk_left_over.shape) if isinstance(prev_chunk_left_over, Tensor) \
+            else type(prev_chunk_left_over).__name__
+        raise ValueError(f"prev_chunk_left_over: expected a float tensor [T, {action_dim}] or [{batch_size}, T, "
+                         f"{action_dim}] (the previous chunk's unexecuted actions, normalised), got {got}")
+    length = min(prev.shape[1], chunk_size, horizon or chunk_size)
+    return prev[:, :length], min(int(inference_delay or 0), length)                       # [B, L, D], d <= L

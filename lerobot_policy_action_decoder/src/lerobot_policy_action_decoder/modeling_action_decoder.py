@@ -10,6 +10,7 @@ are converted at the boundary (`convert.to_core_batch`): `observation.state` →
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import logging
 from typing import Any, Optional
@@ -22,7 +23,8 @@ from action_decoder import PolicyOutput
 from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .configuration_action_decoder import ActionDecoderConfig
-from .convert import camera_keys, decoder_config, feature_dims, task_list, to_core_batch, unused_inputs, unused_inputs_message
+from .convert import (camera_keys, decoder_config, feature_dims, rtc_prefix, rtc_settings, task_list, to_core_batch,
+                      unused_inputs, unused_inputs_message)
 
 
 # True while `from_pretrained` builds the policy: the checkpoint brings every weight, so a pretrained
@@ -37,7 +39,9 @@ class ActionDecoderPolicy(PreTrainedPolicy):
     `n_action_steps` actions per sampled chunk; `predict_action_chunk(batch, sampler="sde",
     return_logprob=True)` returns the core `PolicyOutput` (`actions` [B, H, D] normalised,
     `log_prob` [B], `step_log_probs` [B, K], `chain`, `grid`) and `chain_log_prob` re-scores a
-    chain (PPO). `self.decoder` is the core policy itself.
+    chain (PPO). `self.decoder` is the core policy itself. Real-time chunking reaches the core
+    through LeRobot's hook (`supports_rtc`, `predict_action_chunk(inference_delay=...,
+    prev_chunk_left_over=...)`, which `lerobot-rollout --inference.type=rtc` calls).
     """
 
     config_class = ActionDecoderConfig
@@ -86,20 +90,54 @@ class ActionDecoderPolicy(PreTrainedPolicy):
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict]:
         """The decoder's training loss on a LeRobot batch (normalised, with `action` chunks)."""
         if reduction != "mean":
-            raise ValueError(f"reduction: expected 'mean' (the decoders' losses are batch means), got {reduction!r}")
+            raise ValueError(f"reduction: expected 'mean' (the decoders' losses are batch means; per-sample "
+                             f"losses for lerobot-train --sample_weighting are not available), got {reduction!r}")
         out = self.decoder.compute_loss(self._core(batch, with_actions=True))
         return out.loss, {"loss": out.loss.item()}
+
+    def supports_rtc(self) -> bool:
+        """LeRobot's real-time chunking hook: flow matching and MeanFlow guide a chunk towards the
+        previous one's left-over; DDPM does not."""
+        return self.config.decoder_type != "DDPM"
+
+    @contextlib.contextmanager
+    def _rtc_guidance(self, settings: Optional[tuple[float, str, int]]):
+        """The core samples with LeRobot's RTC guidance weight and schedule while a call runs."""
+        core = self.decoder.config
+        saved = core.rtc_guidance_weight, core.rtc_schedule
+        if settings is not None:
+            core.rtc_guidance_weight, core.rtc_schedule = settings[0], settings[1]
+        try:
+            yield
+        finally:
+            core.rtc_guidance_weight, core.rtc_schedule = saved
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Any], sampler: Optional[str] = None,
                              steps: Optional[int] = None, return_logprob: bool = False,
                              generator=None, noise: Optional[Tensor] = None,
-                             meanflow_velocity: Optional[str] = None):
+                             meanflow_velocity: Optional[str] = None, inference_delay: Optional[int] = None,
+                             prev_chunk_left_over: Optional[Tensor] = None):
         """A chunk [B, H, D] in normalised units (LeRobot's postprocessor un-normalises), or the
         core `PolicyOutput` when log-probs are asked for (`sampler="sde", return_logprob=True`;
-        `flow_sde_return_logprob` does not change what this returns)."""
-        return self.decoder.predict_action_chunk(self._core(batch, with_actions=False), sampler, steps,
-                                                 return_logprob, generator, noise, meanflow_velocity)
+        `flow_sde_return_logprob` does not change what this returns).
+
+        `prev_chunk_left_over` [T, D] or [B, T, D] (the previous chunk's unexecuted actions, normalised)
+        and `inference_delay` (control steps that run while this chunk is sampled) are LeRobot's
+        real-time chunking arguments (`convert.rtc_prefix`): the chunk's first `inference_delay`
+        actions are the left-over's and the rest is guided towards it. LeRobot's `RTCConfig`, where
+        it sets one as `config.rtc_config`, gives the guidance weight, schedule and execution horizon
+        (`convert.rtc_settings`); otherwise `rtc_guidance_weight` and `rtc_schedule` do."""
+        core = self._core(batch, with_actions=False)
+        if prev_chunk_left_over is not None and not self.supports_rtc():
+            raise ValueError(f"prev_chunk_left_over: real-time chunking needs a flow_matching or mean_flow "
+                             f"decoder, got {self.config.decoder_type}")
+        settings = rtc_settings(getattr(self.config, "rtc_config", None)) if prev_chunk_left_over is not None else None
+        prev, delay = rtc_prefix(prev_chunk_left_over, inference_delay, core["state"].shape[0], *self.action_shape,
+                                 horizon=settings[2] if settings else None)
+        with self._rtc_guidance(settings):
+            return self.decoder.predict_action_chunk(core, sampler, steps, return_logprob, generator, noise,
+                                                     meanflow_velocity, prev_chunk=prev, delay=delay)
 
     def sample(self, batch: dict[str, Any], **kwargs: Any) -> PolicyOutput:
         """The core `sample` (differentiable; same arguments as `predict_action_chunk`)."""
