@@ -196,6 +196,25 @@ class PolicyProcessorPipeline(Generic[TI, TO]):
         self.steps, self.name = list(steps), name
 
 
+@dataclasses.dataclass
+class RobotConfig:
+    """0.6.1's robot config base (a draccus choice registry), as the simulated robot uses it."""
+
+    id: Optional[str] = None
+
+    @classmethod
+    def register_subclass(cls, name):
+        return lambda sub: sub
+
+    def __post_init__(self):
+        pass
+
+
+class Robot:
+    def __init__(self, config):
+        self.config = config
+
+
 def fake_lerobot(version: str = "0.6.1") -> dict[str, types.ModuleType]:
     """LeRobot's modules as the plugin imports them, in 0.6.1's layout (0.4.x: its config base)."""
     base = PreTrainedConfig if not version.startswith("0.4") else PreTrainedConfig04
@@ -231,6 +250,9 @@ def fake_lerobot(version: str = "0.6.1") -> dict[str, types.ModuleType]:
                                            POLICY_PREPROCESSOR_DEFAULT_NAME="policy_preprocessor",
                                            POLICY_POSTPROCESSOR_DEFAULT_NAME="policy_postprocessor"),
         "lerobot.policies": _module("lerobot.policies"),
+        "lerobot.robots": _module("lerobot.robots", RobotConfig=RobotConfig, Robot=Robot),
+        "lerobot.robots.config": _module("lerobot.robots.config", RobotConfig=RobotConfig),
+        "lerobot.robots.robot": _module("lerobot.robots.robot", Robot=Robot),
         "lerobot.policies.pretrained": _module("lerobot.policies.pretrained", PreTrainedPolicy=PreTrainedPolicy),
     }
 
