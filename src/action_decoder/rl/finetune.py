@@ -152,8 +152,8 @@ class FinetuneConfig:
     """SAC and dsrl updates per collected decision (default 0.5; 2 with dsrl)."""
     steps: Optional[int] = None
     """dsrl: sampling steps of the frozen decoder (default: the checkpoint's)."""
-    noise_critic: Literal["noise", "action"] = "noise"
-    """dsrl: Q on the noise (DSRL-SAC) or on the executed actions with noise aliasing (DSRL-NA)."""
+    noise_critic: Literal["noise", "action"] = "action"
+    """dsrl: Q on the executed actions with noise aliasing (DSRL-NA) or on the noise (DSRL-SAC)."""
     critics: int = 2
     """dsrl: members of each critic ensemble (2: twin Q; more: targets from the minimum of 2 drawn at random)."""
     noise_hidden: int = 256
