@@ -143,6 +143,16 @@ def test_critic_learns_the_reward_of_terminal_transitions(noise_critic, members)
         assert (qa - qw).abs().mean() < 0.5 * qa.abs().mean()
 
 
+def test_returns_to_go_stop_at_each_episode_end():
+    from action_decoder.rl.finetune import returns_to_go
+
+    rewards = torch.tensor([1.0, 1.0, 1.0, 2.0, 0.5])
+    last = torch.tensor([False, False, True, False, True])
+    g = 0.9
+    want = torch.tensor([1 + g + g * g, 1 + g, 1.0, 2 + g * 0.5, 0.5])
+    assert torch.allclose(returns_to_go(rewards, last, g), want)
+
+
 def test_subset_min_is_the_minimum_of_k_members_drawn_without_replacement():
     """Members of constant values 0..4: the minimum over all is 0; over 2 drawn without replacement it
     is 0 with probability 1 − C(4, 2)/C(5, 2) = 0.4 and 3 with probability 1/C(5, 2) = 0.1, never 4."""
@@ -224,6 +234,7 @@ def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys):
     logs = [json.loads((tmp_path / d / "finetune_log.json").read_text())["history"] for d in ("whole", "cut")]
     strip = lambda hs: [{k: v for k, v in h.items() if k not in ("wall_s", "cpu_s", "rollout_cpu_s")} for h in hs]  # noqa: E731
     assert strip(logs[0]) == strip(logs[1]) and logs[0][-1]["updates"] == 2 * logs[0][-1]["decisions"]
+    assert 0 <= logs[0][-1]["return_to_go"] <= 12 / 2     # dense rewards ≤ 1 a decision, 6 decisions of 2 steps
     # the decoder's weights are the BC policy's; the noise actor moved
     bc = ActionDecoderPolicy.from_pretrained(ckpt)
     assert all(torch.equal(bc.state_dict()[k], v) for k, v in whole.state_dict().items() if k in bc.state_dict())

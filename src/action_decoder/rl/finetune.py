@@ -272,6 +272,18 @@ def _check(cfg: FinetuneConfig) -> None:
     require_wandb(cfg.wandb)
 
 
+def returns_to_go(rewards: torch.Tensor, last: torch.Tensor, gamma: float) -> torch.Tensor:
+    """[N] discounted return each decision earned until its episode ended, over decisions stored
+    episode by episode in time order (`last` marks each episode's final decision): what a critic's
+    value of the behaviour policy should match (nothing is bootstrapped past an episode's end)."""
+    out = torch.zeros_like(rewards)
+    running = torch.zeros(())
+    for i in range(len(rewards) - 1, -1, -1):
+        running = rewards[i] + (0.0 if last[i] else gamma * running)
+        out[i] = running
+    return out
+
+
 def episode_ends(ro) -> torch.Tensor:
     """[N] bool: decisions after which nothing follows, where critics bootstrap with 0: success with
     `--reward success`, and the training cap. The value and Q heads see the episode's progress, so the
@@ -655,6 +667,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                 stats = ppo_update(policy, critic, optimizers["main"], make_batch, data, cfg, gen,
                                    update_policy=group > 1 or iteration >= critic_warmup, stop=stop_updates)
             else:
+                base["return_to_go"] = float(returns_to_go(rewards, ro.last, cfg.gamma).mean())
                 buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
                             "next_state": ro.next_states, "next_progress": ro.next_progress,
                             "done": episode_ends(ro), **({"noise": rec["noise"]} if dsrl else {})})
@@ -679,6 +692,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         mult = float(policy.sigma.multiplier.detach()) if cfg.learn_sigma and not dsrl else 1.0
         row = {"iteration": iteration, "env_steps": env_steps, "return": base["return"], "success": base["success"],
                "episode_length": base["episode_length"], "decisions": base["decisions"],
+               **({"return_to_go": base["return_to_go"]} if "return_to_go" in base else {}),
                **({} if dsrl else {"sigma_mult": mult, "sigma_scale": cfg.sigma * mult}), **stats, "kl_bc": base["kl_bc"],
                "rollout_cpu_s": base["rollout_cpu_s"], "wall_s": time.perf_counter() - t0,
                "cpu_s": time.process_time() - cpu0}
