@@ -238,6 +238,8 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
 
 
 def main(argv=None) -> None:
+    from action_decoder.config import RTC_DELAY_DISTS, DecoderConfig
+
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
     p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency"], default="all",
                    help="all: multimodal, then metaworld (naive / guided / trained); horizons: the guidance horizons; "
@@ -261,7 +263,9 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0, help="evaluation seed; rows of several seeds are pooled")
     p.add_argument("--num-envs", type=int, default=10)
     p.add_argument("--latency-reps", type=int, default=30)
-    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4]/final")
+    p.add_argument("--rtc-delay-dist", default=DecoderConfig.rtc_delay_dist, choices=list(RTC_DELAY_DISTS),
+                   help="metaworld part: the delay distribution of the RTC-trained weights (train --rtc-delay-dist)")
+    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp]]/final")
     p.add_argument("--json", default="docs/benchmarks/rtc.json", help="horizons part: rows")
     p.add_argument("--multimodal-json", default="docs/benchmarks/rtc_multimodal.json")
     p.add_argument("--modes-json", default="docs/benchmarks/rtc_modes.json")

@@ -328,16 +328,22 @@ def multimodal_section(rows: list[dict]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------- Meta-World
-def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int) -> Path:
-    """`action-decoder train` defaults (plus --rtc-max-delay), once, under runs/<task>-<decoder>[-rtc<N>]."""
+def rtc_suffix(max_delay: int, delay_dist: str) -> str:
+    """The run directory's suffix of RTC-trained weights: -rtc<N>, and the delay distribution unless uniform."""
+    return f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}" if max_delay else ""
+
+
+def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform") -> Path:
+    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist), once, under
+    runs/<task>-<decoder>[-rtc<N>[<dist>]]."""
     import subprocess
     import sys
 
-    out = runs / f"{task.split('/')[-1]}-{decoder}{f'-rtc{max_delay}' if max_delay else ''}"
+    out = runs / f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist)}"
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
                "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
-        cmd += ["--rtc-max-delay", str(max_delay)] if max_delay else []
+        cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
         out.mkdir(parents=True, exist_ok=True)
         with open(out.with_suffix(".log"), "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
@@ -353,7 +359,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     from action_decoder.evaluate import make_policy_fn
 
     need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
-    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0) for k in sorted(need)}
+    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0, args.rtc_delay_dist)
+             for k in sorted(need)}
     pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
     rows = []
     for arm in args.arms:
@@ -372,6 +379,7 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                          "boundaries": res["boundaries"], "episode_boundary_jerk": res["episode_boundary_jerk"],
                          "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
                          "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
+                         "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
                          "date": time.strftime("%Y-%m-%d"),
                          "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                     f"{torch.get_num_threads()} torch thread"})

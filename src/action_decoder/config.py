@@ -27,6 +27,7 @@ MEANFLOW_TARGETS = ("identity", "split")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 RTC_HORIZONS = ("auto", "overlap", "execution")        # which rows of prev_chunk RTC guides
+RTC_DELAY_DISTS = ("uniform", "exp")                   # flows.rtc_trained.delay_probs
 IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
 CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 SINGLE_CAMERA_KEY = "observation.image"                 # LeRobot's key for a dataset's only camera (pusht, xarm)
@@ -39,7 +40,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 7
+CONFIG_FORMAT_VERSION = 8
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -50,6 +51,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
+    8: {"rtc_delay_dist": "uniform"},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -161,6 +163,11 @@ class DecoderConfig:
     clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
     the prefix in (`rtc_mode="trained"`) instead of guiding. Below action_chunk_size; not for DDPM.
     Format-6 files, older than the field, read as 0."""
+    rtc_delay_dist: str = "uniform"
+    """How training-time RTC draws each chunk's delay d on 0..rtc_max_delay (`flows.rtc_trained.delay_probs`):
+    "uniform", or "exp" (P(d) ∝ e^(−d): short prefixes more often, so the first rows, which a chunk without
+    a prefix executes, stay in the loss of most chunks). Format-7 files, older than the field, read as
+    "uniform"."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""
@@ -263,6 +270,7 @@ class DecoderConfig:
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
+        _choice("rtc_delay_dist", self.rtc_delay_dist, RTC_DELAY_DISTS)
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
             raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "
