@@ -241,9 +241,12 @@ def main(argv=None) -> None:
     from action_decoder.config import RTC_DELAY_DISTS, DecoderConfig
 
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
-    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency"], default="all",
+    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency", "cost"], default="all",
                    help="all: multimodal, then metaworld (naive / guided / trained); horizons: the guidance horizons; "
-                        "latency: re-time the rows of --multimodal-json and --modes-json")
+                        "latency: re-time the rows of --multimodal-json and --modes-json; cost: plain against "
+                        "trained-RTC chunks at batch 1 on --device, no checkpoints")
+    p.add_argument("--device", default="cpu", help="cost part: the torch device (cpu, cuda)")
+    p.add_argument("--cost-json", default="docs/benchmarks/rtc_cost.json", help="cost part: rows")
     p.add_argument("--tasks", nargs="+", default=TASKS)
     p.add_argument("--delays", nargs="+", type=int, default=None,
                    help="simulated inference delays in control steps (default 0 1 2 4; horizons: 0 2 4)")
@@ -281,6 +284,12 @@ def main(argv=None) -> None:
     if args.latency_only:
         retime(Path(args.json), args)
         args.page_only = True
+    if args.part == "cost":
+        from benchmarks.rtc_modes import chunk_cost
+
+        args.settings = [(d, int(k)) for d, _, k in (x.partition(":") for x in args.settings)]
+        chunk_cost(args, command)
+        return
     if args.part == "latency":
         from benchmarks.rtc_modes import retime as retime_modes
 

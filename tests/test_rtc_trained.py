@@ -229,12 +229,12 @@ def test_training_and_sampling_feed_the_network_the_same_prefix(decoder, steps):
         if decoder == "mean_flow":
             assert bool((r[:, 2:] == (k + 1) / steps).all())
     seen.clear()
-    actions = torch.rand(32, H, D) * 2 - 1
-    policy.train().compute_loss({"state": torch.randn(32, 6), "actions": actions}, torch.Generator().manual_seed(1))
+    actions = torch.rand(64, H, D) * 2 - 1
+    policy.train().compute_loss({"state": torch.randn(64, 6), "actions": actions}, torch.Generator().manual_seed(1))
     normed = policy.normalizers["actions"].normalize(actions)
     delays = set()
     for x, t, r in seen:
-        if t.dim() == 1 or x.shape[0] != 32:
+        if t.dim() == 1 or x.shape[0] != 64:
             continue
         keep = t == 1
         d = keep.sum(1)                                                     # [B] the prefix is the first d rows
@@ -491,3 +491,23 @@ def test_obstacle_episode_with_delay_runs_the_scripted_expert_to_the_goal_on_one
     for d in (0, 2, 4):
         res = obstacle_episode(Expert(), 1, "trained", d, layout=1_000_000, noise_seed=0)
         assert res["success"] and not res["collided"] and res["checks"] and all(res["checks"])
+
+
+def test_benchmark_cost_part_times_plain_and_trained_chunks_side_by_side(tmp_path):
+    from benchmarks.rtc import main
+
+    out = tmp_path / "cost.json"
+    main(["--part", "cost", "--settings", "mean_flow:1", "flow_matching:10", "--latency-reps", "2",
+          "--cost-json", str(out)])
+    rows = json.loads(out.read_text())
+    assert [(r["decoder"], r["steps"]) for r in rows] == [("mean_flow", 1), ("flow_matching", 10)]
+    assert all(r["plain_ms"] > 0 and r["trained_ms"] > 0 and r["delay"] == 4 and r["clock"] == "CPU time"
+               for r in rows)
+
+
+def test_benchmark_names_the_rtc_weights_by_their_delay_distribution():
+    from benchmarks.rtc_modes import _dists, rtc_suffix
+
+    assert rtc_suffix(0, "exp") == "" and rtc_suffix(4, "uniform") == "-rtc4" and rtc_suffix(4, "exp") == "-rtc4exp"
+    rows = [{"arm": "trained", "rtc_delay_dist": "exp"}, {"arm": "trained"}, {"arm": "naive"}]
+    assert _dists(rows) == "delays drawn exp and uniform on 0..4" and _dists(rows[:1]) == "delays drawn exp on 0..4"

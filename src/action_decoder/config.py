@@ -159,15 +159,15 @@ class DecoderConfig:
     whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both)."""
     rtc_max_delay: int = 0
     """Training-time RTC (`flows/rtc_trained.py`): the largest delay d, in control steps, whose committed
-    prefix the network was trained to continue (each training chunk's first d ~ U{0..max} actions given
-    clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
+    prefix the network was trained to continue (each training chunk's first d actions, d on 0..max from
+    `rtc_delay_dist`, given clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
     the prefix in (`rtc_mode="trained"`) instead of guiding. Below action_chunk_size; not for DDPM.
     Format-6 files, older than the field, read as 0."""
-    rtc_delay_dist: str = "uniform"
+    rtc_delay_dist: str = "exp"
     """How training-time RTC draws each chunk's delay d on 0..rtc_max_delay (`flows.rtc_trained.delay_probs`):
-    "uniform", or "exp" (P(d) ∝ e^(−d): short prefixes more often, so the first rows, which a chunk without
-    a prefix executes, stay in the loss of most chunks). Format-7 files, older than the field, read as
-    "uniform"."""
+    "exp" (P(d) ∝ e^(−d): short prefixes more often, so the first rows, which a chunk without a prefix
+    executes, stay in the loss of most chunks) or "uniform" (docs/benchmarks/rtc.md compares them).
+    Format-7 files, older than the field, read as "uniform"."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""

@@ -112,8 +112,8 @@ class TrainConfig:
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     rtc_max_delay: int = 0
     """Training-time real-time chunking: the largest committed prefix, in actions, the policy learns to continue (0: off)."""
-    rtc_delay_dist: Literal["uniform", "exp"] = "uniform"
-    """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (uniform, or exp: P(d) ∝ e^(−d))."""
+    rtc_delay_dist: Literal["exp", "uniform"] = "exp"
+    """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (exp: P(d) ∝ e^(−d), or uniform)."""
     checkpoint_every: int = 500
     """Steps between resumable checkpoints."""
     log_every: int = 25

@@ -95,7 +95,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     rtc_schedule: str = "exp"
     rtc_horizon: str = "auto"
     rtc_max_delay: int = 0
-    rtc_delay_dist: str = "uniform"
+    rtc_delay_dist: str = "exp"
     default_ctrl_freq: float = 10.0
 
     normalization_mapping: dict[str, NormalizationMode] = field(
