@@ -268,7 +268,9 @@ def main(argv=None) -> None:
     p.add_argument("--latency-reps", type=int, default=30)
     p.add_argument("--rtc-delay-dist", default=DecoderConfig.rtc_delay_dist, choices=list(RTC_DELAY_DISTS),
                    help="metaworld part: the delay distribution of the RTC-trained weights (train --rtc-delay-dist)")
-    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp]]/final")
+    p.add_argument("--rtc-balance-rows", action="store_true",
+                   help="the RTC-trained weights weight loss row j by 1/P(d <= j) (train --rtc-balance-rows)")
+    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal]]/final")
     p.add_argument("--json", default="docs/benchmarks/rtc.json", help="horizons part: rows")
     p.add_argument("--multimodal-json", default="docs/benchmarks/rtc_multimodal.json")
     p.add_argument("--modes-json", default="docs/benchmarks/rtc_modes.json")

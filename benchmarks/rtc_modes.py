@@ -85,7 +85,8 @@ def retime(args) -> None:
             if "checkpoint" in r:
                 ckpt = r["checkpoint"]
             else:
-                suffix = rtc_suffix(MAX_DELAY, r.get("rtc_delay_dist") or "uniform") if r["arm"] == "trained" else ""
+                suffix = rtc_suffix(MAX_DELAY, r.get("rtc_delay_dist") or "uniform", bool(r.get("rtc_balance_rows"))) \
+                    if r["arm"] == "trained" else ""
                 ckpt = Path(args.runs) / "multimodal" / f"{r['task']}-{r['decoder']}{suffix}-seed{r['seed']}"
             policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
             plain, armed = latency_ms(policy, r["steps"], r["arm"], args.latency_reps)
@@ -163,7 +164,7 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
     for key, max_delay in (("plain", 0), ("rtc", MAX_DELAY)):
         if key not in need:
             continue
-        path = runs / f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist)}-seed{seed}"
+        path = runs / f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows)}-seed{seed}"
         if not (path / "model.safetensors").is_file():
             b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay})
             policy, cpu_s = train(decoder, draw, state_dim, action_dim, b, seed)
@@ -298,7 +299,7 @@ def run_multimodal(args, command: str) -> None:
     from action_decoder.envs.obstacle_routes import ACTION_DIM, OBS_DIM, expert_dataset
     from benchmarks.multimodal import Budget, dataset_batch, synthetic_batch
 
-    budget = Budget(steps=args.mm_train_steps, rtc_delay_dist=args.rtc_delay_dist)
+    budget = Budget(steps=args.mm_train_steps, rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows)
     runs = Path(args.runs) / "multimodal"
     decoders = sorted({d for d, _ in args.settings})
     out = Path(args.multimodal_json)
@@ -318,6 +319,7 @@ def run_multimodal(args, command: str) -> None:
                 if r["delay"] == DELAYS[-1] else (None, None)
             r.update(latency_plain_ms=plain, latency_ms=armed, seed=args.seed, train_cpu_s=p["train_cpu_s"],
                      rtc_delay_dist=budget.rtc_delay_dist if r["arm"] == "trained" else None,
+                     rtc_balance_rows=budget.rtc_balance_rows if r["arm"] == "trained" else None,
                      train_steps=budget.steps, command=command, date=time.strftime("%Y-%m-%d"),
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
@@ -335,7 +337,8 @@ def _pct(x) -> str:
 
 def _dists(rows: list[dict]) -> str:
     """How the trained rows' weights drew their delays (rows without the field: uniform)."""
-    got = sorted({r.get("rtc_delay_dist") or "uniform" for r in rows if r["arm"] == "trained"})
+    got = sorted({(r.get("rtc_delay_dist") or "uniform") + (", rows balanced" if r.get("rtc_balance_rows") else "")
+                  for r in rows if r["arm"] == "trained"})
     return "delays drawn " + (" and ".join(got) if got else "–") + " on 0.." + str(MAX_DELAY)
 
 
@@ -389,22 +392,26 @@ def multimodal_section(rows: list[dict]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------- Meta-World
-def rtc_suffix(max_delay: int, delay_dist: str) -> str:
-    """The run directory's suffix of RTC-trained weights: -rtc<N>, and the delay distribution unless uniform."""
-    return f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}" if max_delay else ""
+def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False) -> str:
+    """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform, and
+    "bal" with balanced row weights."""
+    return f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}" \
+        if max_delay else ""
 
 
-def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform") -> Path:
-    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist), once, under
-    runs/<task>-<decoder>[-rtc<N>[<dist>]]."""
+def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform",
+                    balance_rows: bool = False) -> Path:
+    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows), once,
+    under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]]."""
     import subprocess
     import sys
 
-    out = runs / f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist)}"
+    out = runs / f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows)}"
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
                "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
         cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
+        cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
         out.mkdir(parents=True, exist_ok=True)
         with open(out.with_suffix(".log"), "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
@@ -420,8 +427,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     from action_decoder.evaluate import make_policy_fn
 
     need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
-    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0, args.rtc_delay_dist)
-             for k in sorted(need)}
+    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0, args.rtc_delay_dist,
+                                args.rtc_balance_rows) for k in sorted(need)}
     pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
     rows = []
     for arm in args.arms:
@@ -441,6 +448,7 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                          "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
                          "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
                          "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
+                         "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
                          "date": time.strftime("%Y-%m-%d"),
                          "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                     f"{torch.get_num_threads()} torch thread"})

@@ -133,6 +133,36 @@ def test_flow_matching_loss_draws_its_delays_from_the_delay_distribution():
     torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
 
 
+def test_balanced_rows_weight_each_row_by_the_inverse_share_of_chunks_that_train_it():
+    """Row j is in the loss when d ≤ j: weights 1/P(d ≤ j) (uniform on 0..4: 5, 2.5, 5/3, 1.25, then 1) make
+    each row's expected weight over the delays the plain loss's, 1/(H·D) per entry."""
+    from action_decoder.flows.rtc_trained import row_weights
+
+    w = row_weights(4, H, "uniform")
+    torch.testing.assert_close(w, torch.tensor([5, 2.5, 5 / 3, 1.25, 1, 1, 1, 1], dtype=torch.float64))
+    torch.testing.assert_close(row_weights(4, H, "exp")[0], 1 / delay_probs(4, "exp")[0])
+    a = torch.randn(4096, H, D, dtype=torch.float64)
+    oracle = lambda x, t: torch.zeros_like(x)                                # noqa: E731
+    loss = flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4, rtc_balance_rows=True)
+    g = torch.Generator().manual_seed(3)
+    torch.rand(4096, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    live = ~prefix_mask(sample_delays(4096, 4, g), H)
+    sq = (a - e).square()
+    want = (sq * (live * w)[..., None]).mean((1, 2)).mean()
+    torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
+    # In expectation over the delays, every row weighs as in the plain loss.
+    torch.testing.assert_close((live * w).mean(0), torch.ones(H, dtype=torch.float64), rtol=0, atol=0.12)
+    # MeanFlow: the adaptive weight reads the balanced error; without a prefix it is the plain loss.
+    mf = dict(ratio_r_neq_t=0.0, adaptive_p=0.0, time_dist="uniform", rtc_max_delay=4)
+    u = lambda x, t, r: torch.zeros_like(x)                                  # noqa: E731
+    balanced = meanflow_loss(u, a, torch.Generator().manual_seed(3), rtc_balance_rows=True, **mf)
+    plain = meanflow_loss(u, a, torch.Generator().manual_seed(3), **mf)
+    assert abs(float(balanced) / float(plain) - 1) > 1e-3
+    with pytest.raises(ValueError, match="rtc_balance_rows: expected true or false, got 'yes'"):
+        DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_balance_rows="yes")
+
+
 @pytest.mark.parametrize("dudt", ["jvp", "finite_difference"])
 def test_meanflow_loss_holds_the_prefix_fixed_along_the_tangent(dudt):
     """u(x, t, r) = x[:, 0] + t[:, 0] broadcast over the chunk: with row 0 in the prefix (x = a, t = 1
@@ -378,9 +408,10 @@ def test_config_saves_rtc_delay_dist_and_format_7_reads_uniform(tmp_path):
     cfg.to_json(tmp_path / "c.json")
     saved = json.loads((tmp_path / "c.json").read_text())
     assert saved["rtc_delay_dist"] == "exp" and DecoderConfig.from_json(tmp_path / "c.json").rtc_delay_dist == "exp"
-    old = {k: v for k, v in saved.items() if k != "rtc_delay_dist"}
+    old = {k: v for k, v in saved.items() if k not in ("rtc_delay_dist", "rtc_balance_rows")}
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 7}))
     assert DecoderConfig.from_json(tmp_path / "old.json").rtc_delay_dist == "uniform"
+    assert saved["rtc_balance_rows"] is False and DecoderConfig.from_json(tmp_path / "old.json").rtc_balance_rows is False
     with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp'\], got 'zipf'"):
         DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_delay_dist="zipf")
 
@@ -419,13 +450,13 @@ def test_cli_round_trip_train_rtc_max_delay_then_eval_rtc_mode(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "run"
     assert cli.main(["train", "--task", "metaworld/reach", "--decoder", "mean_flow", "--rtc-max-delay", "2",
-                     "--rtc-delay-dist", "exp",
+                     "--rtc-delay-dist", "exp", "--rtc-balance-rows",
                      "--steps", "2", "--demos", "1", "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1",
                      "--eval-episodes", "0", "--no-progress", "--checkpoint-every", "2", "--log-every", "1",
                      "--output-dir", str(out)]) == 0
     ckpt = out / "final"
     saved = json.loads((ckpt / "config.json").read_text())
-    assert saved["rtc_max_delay"] == 2 and saved["rtc_delay_dist"] == "exp"
+    assert saved["rtc_max_delay"] == 2 and saved["rtc_delay_dist"] == "exp" and saved["rtc_balance_rows"] is True
     args = ["eval", "--checkpoint", str(ckpt), "--episodes", "1", "--num-envs", "1", "--max-steps", "12",
             "--delay", "2", "--rtc"]
     for mode in ("trained", "guided"):

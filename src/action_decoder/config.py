@@ -51,7 +51,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
-    8: {"rtc_delay_dist": "uniform"},
+    8: {"rtc_delay_dist": "uniform", "rtc_balance_rows": False},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -168,6 +168,9 @@ class DecoderConfig:
     "exp" (P(d) ∝ e^(−d): short prefixes more often, so the first rows, which a chunk without a prefix
     executes, stay in the loss of most chunks) or "uniform" (docs/benchmarks/rtc.md compares them).
     Format-7 files, older than the field, read as "uniform"."""
+    rtc_balance_rows: bool = False
+    """Training-time RTC: weight row j of the prefix-masked loss by 1/P(d ≤ j), so that each row's expected
+    weight is the plain loss's (row j is in the loss only when d ≤ j). Format-7 files read False."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""
@@ -271,6 +274,8 @@ class DecoderConfig:
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
         _choice("rtc_delay_dist", self.rtc_delay_dist, RTC_DELAY_DISTS)
+        if not isinstance(self.rtc_balance_rows, bool):
+            raise ValueError(f"rtc_balance_rows: expected true or false, got {self.rtc_balance_rows!r}")
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
             raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "

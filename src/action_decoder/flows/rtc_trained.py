@@ -52,6 +52,13 @@ def delay_probs(max_delay: int, dist: str = "uniform") -> Tensor:
     return w / w.sum()
 
 
+def row_weights(max_delay: int, horizon: int, dist: str = "uniform") -> Tensor:
+    """1 / P(d ≤ j) [H] (float64): the weight that makes row j's expected share of a prefix-masked loss that
+    of the plain loss (row j is in the loss only when d ≤ j; rows j ≥ max_delay always are)."""
+    cdf = delay_probs(max_delay, dist).cumsum(0)                                   # [max_delay + 1]
+    return 1.0 / cdf[torch.arange(horizon).clamp_max(max_delay)]
+
+
 def sample_delays(batch: int, max_delay: int, generator: Optional[torch.Generator] = None,
                   device=None, dist: str = "uniform") -> Tensor:
     """Delays d [B] (int64) on 0..max_delay from `delay_probs(max_delay, dist)`."""
