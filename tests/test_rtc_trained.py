@@ -112,12 +112,17 @@ def test_delay_distributions_uniform_and_exp():
     freq = torch.bincount(d, minlength=5).double() / d.numel()
     torch.testing.assert_close(freq, p, rtol=0, atol=4e-3)
     assert int(d.min()) == 0 and int(d.max()) == 4
+    torch.testing.assert_close(delay_probs(4, "half_zero"), torch.tensor([0.5, 0.125, 0.125, 0.125, 0.125],
+                                                                       dtype=torch.float64))
+    half = torch.bincount(sample_delays(200_000, 4, g(), dist="half_zero"), minlength=5).double() / 200_000
+    torch.testing.assert_close(half, delay_probs(4, "half_zero"), rtol=0, atol=4e-3)
+    assert delay_probs(0, "half_zero").tolist() == [1.0]
     # The share of chunks whose row j is in the loss, P(d <= j): exp keeps the first rows trained.
     live = (~prefix_mask(d, H)).double().mean(0)                            # [H]
     torch.testing.assert_close(live[:5], p.cumsum(0), rtol=0, atol=4e-3)
-    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp'\], got 'normal'"):
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'normal'"):
         delay_probs(4, "normal")
-    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp'\], got 'normal'"):
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'normal'"):
         flow_matching_loss(lambda x, t: x, torch.zeros(2, H, D), rtc_max_delay=2, rtc_delay_dist="normal")
 
 
@@ -157,8 +162,12 @@ def test_balanced_rows_weight_each_row_by_the_inverse_share_of_chunks_that_train
     mf = dict(ratio_r_neq_t=0.0, adaptive_p=0.0, time_dist="uniform", rtc_max_delay=4)
     u = lambda x, t, r: torch.zeros_like(x)                                  # noqa: E731
     balanced = meanflow_loss(u, a, torch.Generator().manual_seed(3), rtc_balance_rows=True, **mf)
-    plain = meanflow_loss(u, a, torch.Generator().manual_seed(3), **mf)
-    assert abs(float(balanced) / float(plain) - 1) > 1e-3
+    g = torch.Generator().manual_seed(3)
+    sample_meanflow_times(4096, 0.0, 0.4, 1.0, g, dtype=torch.float64, dist="uniform")
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    live = ~prefix_mask(sample_delays(4096, 4, g), H)
+    torch.testing.assert_close(balanced, ((a - e).square() * (live * w)[..., None]).mean((1, 2)).mean(),
+                               rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match="rtc_balance_rows: expected true or false, got 'yes'"):
         DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_balance_rows="yes")
 
@@ -412,7 +421,7 @@ def test_config_saves_rtc_delay_dist_and_format_7_reads_uniform(tmp_path):
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 7}))
     assert DecoderConfig.from_json(tmp_path / "old.json").rtc_delay_dist == "uniform"
     assert saved["rtc_balance_rows"] is False and DecoderConfig.from_json(tmp_path / "old.json").rtc_balance_rows is False
-    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp'\], got 'zipf'"):
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'zipf'"):
         DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_delay_dist="zipf")
 
 

@@ -112,8 +112,8 @@ class TrainConfig:
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     rtc_max_delay: int = 0
     """Training-time real-time chunking: the largest committed prefix, in actions, the policy learns to continue (0: off)."""
-    rtc_delay_dist: Literal["exp", "uniform"] = "exp"
-    """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (exp: P(d) ∝ e^(−d), or uniform)."""
+    rtc_delay_dist: Literal["exp", "half_zero", "uniform"] = "exp"
+    """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (exp: P(d) ∝ e^(−d); half_zero: 0 for half the chunks, else uniform; uniform)."""
     rtc_balance_rows: bool = False
     """Training-time RTC: weight row j of the loss by 1/P(d ≤ j), the share of chunks whose loss covers it."""
     checkpoint_every: int = 500

@@ -32,7 +32,7 @@ from ..config import RTC_DELAY_DISTS
 from .paths import AvgVelocity, Velocity, check_chunk, check_steps, checked_call, compute_dtype, time_grid
 
 KEEP, CLEAN = "rtc_keep", "rtc_clean"      # the keyword arguments `with_clean_prefix` consumes
-DELAY_DISTS = RTC_DELAY_DISTS             # P(d) ∝ 1, or ∝ e^(−d), on 0..max_delay
+DELAY_DISTS = RTC_DELAY_DISTS             # P(d) on 0..max_delay: ∝ 1, ∝ e^(−d), or half at 0 (`delay_probs`)
 
 
 def check_max_delay(max_delay, horizon: int, name: str = "rtc_max_delay") -> int:
@@ -44,11 +44,14 @@ def check_max_delay(max_delay, horizon: int, name: str = "rtc_max_delay") -> int
 
 
 def delay_probs(max_delay: int, dist: str = "uniform") -> Tensor:
-    """P(d) [max_delay + 1] (float64) on 0..max_delay: "uniform", or "exp" (∝ e^(−d))."""
+    """P(d) [max_delay + 1] (float64) on 0..max_delay: "uniform"; "exp" (∝ e^(−d)); "half_zero" (d = 0 for
+    half the chunks, the other half uniform on 1..max_delay)."""
     if dist not in DELAY_DISTS:
         raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {dist!r}")
     d = torch.arange(max_delay + 1, dtype=torch.float64)
-    w = torch.ones_like(d) if dist == "uniform" else torch.exp(-d)
+    if dist == "half_zero" and max_delay:
+        return torch.where(d == 0, torch.full_like(d, 0.5), torch.full_like(d, 0.5 / max_delay))
+    w = torch.exp(-d) if dist == "exp" else torch.ones_like(d)
     return w / w.sum()
 
 
