@@ -358,7 +358,8 @@ def multimodal_section(rows: list[dict]) -> list[str]:
              f"re-planning every {S} actions; route consistency over the re-plans made before the point passes "
              f"the obstacle (count in the JSON). Each policy trains {rows[0]['train_steps']} steps "
              f"(benchmarks/multimodal.py's budget); naive and guided use the weights trained without RTC, trained "
-             f"the weights trained with rtc_max_delay = {MAX_DELAY} ({_dists(rows)}). Chunk ms: batch 1, the median CPU time of "
+             f"the weights trained with rtc_max_delay = {MAX_DELAY} (synthetic: {_dists(list(syn.values()))}; obstacle: "
+             f"{_dists(list(obs.values()))}). Chunk ms: batch 1, the median CPU time of "
              f"interleaved calls (one torch thread), the arm at d = {DELAYS[-1]} against a plain chunk of the same "
              f"weights. –: not measured.", "",
              "| setting | d | arm | synthetic: route kept | synthetic: off both routes | synthetic: switch jerk | "
@@ -494,4 +495,38 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                 a_ms = statistics.mean(r["latency_ms"] for r in got)
                 lines.append(f"| {LABEL[setting]} | {d} | {arm} | {len(got)} | {succ:.1f} | {jerk:.4f} ± {se:.4f} | "
                              f"{p_ms:.1f} → {a_ms:.1f} ({a_ms / p_ms:.2f}×) |")
+    return lines + ["", *per_task_section(rows), ""]
+
+
+def per_task_section(rows: list[dict]) -> list[str]:
+    """Success per task (%) of each setting and arm, at each delay measured: the pooled rows above can mix task sets."""
+    tasks = sorted({r["task"] for r in rows})
+    delays = sorted({r["delay"] for r in rows})
+    by = {(r["task"], r["decoder"], r["steps"], r["arm"], r["delay"]): r for r in rows}
+    lines = ["### Success per task (%), at d = " + " / ".join(map(str, delays)), "",
+             "| setting | arm | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
+    for setting in SETTINGS:
+        for arm in ARMS:
+            if not any((t, *setting, arm, d) in by for t in tasks for d in delays):
+                continue
+            cell = lambda t: " / ".join("–" if (t, *setting, arm, d) not in by else       # noqa: E731
+                                        f"{100 * by[(t, *setting, arm, d)]['success_rate']:.0f}" for d in delays)
+            lines.append(f"| {LABEL[setting]} | {arm} | " + " | ".join(cell(t) for t in tasks) + " |")
+    return lines
+
+
+def cost_section(rows: list[dict]) -> list[str]:
+    """The cost part's rows: plain against trained-RTC chunks at batch 1, per device."""
+    if not rows:
+        return []
+    meta = sorted({(r["date"], r["machine"], r["command"]) for r in rows})
+    lines = ["## Chunk cost: plain against trained RTC", "",
+             *[f"Measured {d} ({m}) by `{c}`." for d, m, c in meta], "",
+             f"Batch 1, a network of `action-decoder train`'s default size (hidden 96, 3 layers, H = {H}, a 39-d "
+             f"state) with random weights, the trained arm at d = {MAX_DELAY}; median over interleaved calls (CPU: "
+             f"the process's CPU time; CUDA: wall time between synchronisations). Target: ≤ 1.05×.", "",
+             "| setting | device | calls | plain ms | trained ms | trained ÷ plain |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {r['machine']} | {r['reps']} | {r['plain_ms']:.3f} | "
+                     f"{r['trained_ms']:.3f} | {r['ratio']:.3f}× |")
     return lines + [""]
