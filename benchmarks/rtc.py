@@ -185,7 +185,8 @@ def per_task(rows: list[dict], delays: list[int]) -> list[str]:
 INTRO = ("Inference takes d control steps; the robot executes the old chunk's next d actions meanwhile, and the new "
          "chunk takes over after them. naive: the new chunk switches in unconditioned; guided: `rtc_mode=\"guided\"` "
          "(`flows/rtc.py`, weights trained without RTC); trained: `rtc_mode=\"trained\"` (`flows/rtc_trained.py`, "
-         "weights trained with `--rtc-max-delay 4`), the committed actions fed in clean. "
+         "weights trained with `--rtc-max-delay 4` and the delay distribution each section names), the committed "
+         "actions fed in clean. "
          "Route kept: the share of re-plans whose executed rows stay on the committed route.")
 
 
