@@ -126,6 +126,8 @@ class Budget:
     device: str = "cpu"        # where the policy trains and samples; data and environments stay on the CPU
     log_every: int = 0         # print the training step and loss to stderr every this many steps (0: never)
     rtc_max_delay: int = 0     # training-time real-time chunking (DecoderConfig.rtc_max_delay; 0: off)
+    rtc_delay_dist: str = DecoderConfig.rtc_delay_dist   # how its delays are drawn (DecoderConfig.rtc_delay_dist)
+    rtc_balance_rows: bool = False   # its loss rows weighted 1/P(d <= j) (DecoderConfig.rtc_balance_rows)
 
 
 def use_loss_options(options: dict) -> None:
@@ -141,7 +143,8 @@ def make_policy(decoder: str, state_dim: int, action_dim: int, b: Budget) -> Act
     cfg = DecoderConfig(decoder_type=decoder, state_dim=state_dim, action_dim=action_dim, action_chunk_size=16,
                         hidden_size=b.hidden, num_hidden_layers=b.layers, num_attention_heads=4,
                         num_key_value_heads=2, normalization_mode="identity", prediction_type="sample",
-                        rtc_max_delay=b.rtc_max_delay, **extra)
+                        rtc_max_delay=b.rtc_max_delay, rtc_delay_dist=b.rtc_delay_dist,
+                        rtc_balance_rows=b.rtc_balance_rows, **extra)
     return ActionDecoderPolicy(cfg)
 
 

@@ -7,7 +7,7 @@ naive: the new chunk, sampled without the old one, takes over after the d old ac
 guided: `flows/rtc.py` on weights trained without RTC (FM: ΠGDM guidance over the overlap; MeanFlow:
   the J = I pull over the executed rows, an output blend at K = 1);
 trained: the d committed actions fed in clean at t = 1 (`flows/rtc_trained.py`) on weights trained with
-  rtc_max_delay = 4 (delays uniform on 0..4).
+  rtc_max_delay = 4 (delays drawn by `--rtc-delay-dist`, `DecoderConfig.rtc_delay_dist`).
 naive and guided use the weights trained without RTC; trained uses the RTC-trained ones.
 
 (a) synthetic two-route chunks (`benchmarks.multimodal.routes`): for each state the committed plan is one
@@ -85,7 +85,8 @@ def retime(args) -> None:
             if "checkpoint" in r:
                 ckpt = r["checkpoint"]
             else:
-                suffix = f"-rtc{MAX_DELAY}" if r["arm"] == "trained" else ""
+                suffix = rtc_suffix(MAX_DELAY, r.get("rtc_delay_dist") or "uniform", bool(r.get("rtc_balance_rows"))) \
+                    if r["arm"] == "trained" else ""
                 ckpt = Path(args.runs) / "multimodal" / f"{r['task']}-{r['decoder']}{suffix}-seed{r['seed']}"
             policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
             plain, armed = latency_ms(policy, r["steps"], r["arm"], args.latency_reps)
@@ -95,6 +96,56 @@ def retime(args) -> None:
         path.write_text(json.dumps(rows, indent=1))
 
 
+def chunk_cost(args, command: str) -> list[dict]:
+    """Plain against trained-RTC chunks (d = 4) at batch 1 on a network of `action-decoder train`'s default
+    size (hidden 96, 3 layers, H = 16, Meta-World's 39-d state, random weights: the cost does not depend on
+    them), each setting interleaved, --latency-reps calls each. CPU: the process's CPU time; CUDA: wall time
+    between synchronisations. Rows to --cost-json."""
+    from action_decoder import ActionDecoderPolicy, DecoderConfig
+
+    device = torch.device(args.device)
+    rows = []
+    for decoder, steps in args.settings:
+        torch.manual_seed(0)
+        cfg = DecoderConfig(decoder_type=decoder, state_dim=39, action_dim=4, action_chunk_size=H, hidden_size=96,
+                            num_hidden_layers=3, num_attention_heads=4, num_key_value_heads=2, rtc_max_delay=MAX_DELAY,
+                            num_inference_timesteps=steps, n_action_steps=S,
+                            flow_prediction="sample" if decoder == "mean_flow" else "velocity")
+        stats = {k: {"mean": torch.zeros(n), "std": torch.ones(n), "min": -torch.ones(n), "max": torch.ones(n)}
+                 for k, n in (("state", 39), ("actions", 4))}
+        policy = ActionDecoderPolicy(cfg, stats).to(device).eval()
+        state, prev = torch.zeros(1, 39, device=device), torch.zeros(1, H - S, 4, device=device)
+        clock = time.process_time if device.type == "cpu" else time.perf_counter
+        times = {"naive": [], "trained": []}
+        with torch.no_grad():
+            for rep in range(args.latency_reps + 10):
+                for arm in times:
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    t0 = clock()
+                    chunk(policy, state, steps, arm, prev, MAX_DELAY, torch.Generator(device).manual_seed(rep))
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    if rep >= 10:
+                        times[arm].append(clock() - t0)
+        plain, trained = (1000 * statistics.median(times[a]) for a in ("naive", "trained"))
+        rows.append({"decoder": decoder, "steps": steps, "delay": MAX_DELAY, "plain_ms": plain, "trained_ms": trained,
+                     "ratio": trained / plain, "reps": args.latency_reps, "device": str(device),
+                     "clock": "CPU time" if device.type == "cpu" else "wall time, synchronised",
+                     "torch": torch.__version__, "command": command, "date": time.strftime("%Y-%m-%d"),
+                     "machine": (torch.cuda.get_device_name(device) if device.type == "cuda" else
+                                 f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
+                                 f"{torch.get_num_threads()} torch thread")})
+        print(f"{LABEL[(decoder, steps)]} {device}: plain {plain:.3f} ms, trained (d = {MAX_DELAY}) {trained:.3f} ms, "
+              f"{trained / plain:.3f}x", flush=True)
+    out = Path(args.cost_json)
+    old = json.loads(out.read_text()) if out.is_file() else []
+    key = lambda r: (r["decoder"], r["steps"], r["device"], r["machine"])           # noqa: E731
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps([r for r in old if key(r) not in {key(n) for n in rows}] + rows, indent=1))
+    return rows
+
+
 def switch_jerk(seq: np.ndarray, switch: int) -> float:
     """Mean squared second difference of seq [T, D] over the stencils centred at switch − 1 and switch."""
     centres = [c for c in (switch - 1, switch) if 1 <= c <= len(seq) - 2]
@@ -102,15 +153,18 @@ def switch_jerk(seq: np.ndarray, switch: int) -> float:
 
 
 def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, draw, state_dim: int,
-                     action_dim: int) -> dict:
-    """{"plain": policy, "rtc": policy, "train_cpu_s": {...}}: trained once (benchmarks.multimodal.train),
-    kept under runs/<task>-<decoder>[-rtc4]."""
+                     action_dim: int, arms=ARMS) -> dict:
+    """{"plain": policy, "rtc": policy, "train_cpu_s": {...}} (the weights `arms` need): trained once
+    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>]]."""
     from action_decoder import ActionDecoderPolicy
     from benchmarks.multimodal import Budget, train
 
     out = {"train_cpu_s": {}}
+    need = {"rtc" if a == "trained" else "plain" for a in arms}
     for key, max_delay in (("plain", 0), ("rtc", MAX_DELAY)):
-        path = runs / f"{task}-{decoder}{f'-rtc{max_delay}' if max_delay else ''}-seed{seed}"
+        if key not in need:
+            continue
+        path = runs / f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows)}-seed{seed}"
         if not (path / "model.safetensors").is_file():
             b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay})
             policy, cpu_s = train(decoder, draw, state_dim, action_dim, b, seed)
@@ -121,14 +175,15 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
     return out
 
 
-def cells(pols_by_decoder: dict):
+def cells(pols_by_decoder: dict, arms=ARMS):
     """(decoder, steps, its arms' policies, delay, arm) of every cell whose decoder was trained."""
     for decoder, steps in SETTINGS:
         pols = pols_by_decoder.get(decoder)
         if pols is not None:
             for d in DELAYS:
                 for arm in ARMS:
-                    yield decoder, steps, pols, d, arm
+                    if arm in arms:
+                        yield decoder, steps, pols, d, arm
 
 
 def arm_policy(pols: dict, arm: str):
@@ -145,7 +200,7 @@ def route_rows(state: torch.Tensor, sign: torch.Tensor, rows: torch.Tensor) -> t
     return base + sign[:, None, None] * bend
 
 
-def run_synthetic(pols_by_decoder: dict, states: int, samples: int, seed: int) -> list[dict]:
+def run_synthetic(pols_by_decoder: dict, states: int, samples: int, seed: int, arms=ARMS) -> list[dict]:
     from benchmarks.multimodal import mode_metrics, routes, separation
 
     gen = torch.Generator().manual_seed(4242 + seed)
@@ -156,7 +211,7 @@ def run_synthetic(pols_by_decoder: dict, states: int, samples: int, seed: int) -
     other = route_rows(state, -sign, torch.arange(H))
     prev = committed[:, 2: 2 + H - S]                                                      # [N, L, 4]
     rows = []
-    for decoder, steps, pols, d, arm in cells(pols_by_decoder):
+    for decoder, steps, pols, d, arm in cells(pols_by_decoder, arms):
         gens = [torch.Generator().manual_seed(seed * 100_000 + i) for i in range(n)]
         new = chunk(arm_policy(pols, arm), state, steps, arm, prev, d, gens)      # [N, H, 4]
         ex = slice(d, d + S)
@@ -221,9 +276,9 @@ def obstacle_episode(policy, steps: int, arm: str, d: int, layout: int, noise_se
             "jerks": jerks}
 
 
-def run_obstacle(pols_by_decoder: dict, episodes: int, seed: int) -> list[dict]:
+def run_obstacle(pols_by_decoder: dict, episodes: int, seed: int, arms=ARMS) -> list[dict]:
     rows = []
-    for decoder, steps, pols, d, arm in cells(pols_by_decoder):
+    for decoder, steps, pols, d, arm in cells(pols_by_decoder, arms):
         res = [obstacle_episode(arm_policy(pols, arm), steps, arm, d, 1_000_000 + seed * 1000 + j, j)
                for j in range(episodes)]
         checks = [c for r in res for c in r["checks"]]
@@ -244,25 +299,27 @@ def run_multimodal(args, command: str) -> None:
     from action_decoder.envs.obstacle_routes import ACTION_DIM, OBS_DIM, expert_dataset
     from benchmarks.multimodal import Budget, dataset_batch, synthetic_batch
 
-    budget = Budget(steps=args.mm_train_steps)
+    budget = Budget(steps=args.mm_train_steps, rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows)
     runs = Path(args.runs) / "multimodal"
     decoders = sorted({d for d, _ in args.settings})
     out = Path(args.multimodal_json)
     for task in args.multimodal:
         if task == "synthetic":
-            pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4)
+            pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4, args.arms)
                     for dec in decoders}
-            new = run_synthetic(pols, args.mm_states, args.mm_samples, args.seed)
+            new = run_synthetic(pols, args.mm_states, args.mm_samples, args.seed, args.arms)
         else:
             states, chunks = expert_dataset(budget.demos, args.seed)
             pols = {dec: trained_policies("obstacle", dec, budget, args.seed, runs, dataset_batch(states, chunks),
-                                          OBS_DIM, ACTION_DIM) for dec in decoders}
-            new = run_obstacle(pols, args.mm_episodes, args.seed)
+                                          OBS_DIM, ACTION_DIM, args.arms) for dec in decoders}
+            new = run_obstacle(pols, args.mm_episodes, args.seed, args.arms)
         for r in new:
             p = pols[r["decoder"]]
             plain, armed = latency_ms(arm_policy(p, r["arm"]), r["steps"], r["arm"], args.latency_reps) \
                 if r["delay"] == DELAYS[-1] else (None, None)
             r.update(latency_plain_ms=plain, latency_ms=armed, seed=args.seed, train_cpu_s=p["train_cpu_s"],
+                     rtc_delay_dist=budget.rtc_delay_dist if r["arm"] == "trained" else None,
+                     rtc_balance_rows=budget.rtc_balance_rows if r["arm"] == "trained" else None,
                      train_steps=budget.steps, command=command, date=time.strftime("%Y-%m-%d"),
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
@@ -276,6 +333,13 @@ def run_multimodal(args, command: str) -> None:
 # ----------------------------------------------------------------------------------------- the page
 def _pct(x) -> str:
     return "–" if x is None or x != x else f"{100 * x:.0f} %"
+
+
+def _dists(rows: list[dict]) -> str:
+    """How the trained rows' weights drew their delays (rows without the field: uniform)."""
+    got = sorted({(r.get("rtc_delay_dist") or "uniform") + (", rows balanced" if r.get("rtc_balance_rows") else "")
+                  for r in rows if r["arm"] == "trained"})
+    return "delays drawn " + (" and ".join(got) if got else "–") + " on 0.." + str(MAX_DELAY)
 
 
 def multimodal_section(rows: list[dict]) -> list[str]:
@@ -294,7 +358,8 @@ def multimodal_section(rows: list[dict]) -> list[str]:
              f"re-planning every {S} actions; route consistency over the re-plans made before the point passes "
              f"the obstacle (count in the JSON). Each policy trains {rows[0]['train_steps']} steps "
              f"(benchmarks/multimodal.py's budget); naive and guided use the weights trained without RTC, trained "
-             f"the weights trained with rtc_max_delay = {MAX_DELAY}. Chunk ms: batch 1, the median CPU time of "
+             f"the weights trained with rtc_max_delay = {MAX_DELAY} (synthetic: {_dists(list(syn.values()))}; obstacle: "
+             f"{_dists(list(obs.values()))}). Chunk ms: batch 1, the median CPU time of "
              f"interleaved calls (one torch thread), the arm at d = {DELAYS[-1]} against a plain chunk of the same "
              f"weights. –: not measured.", "",
              "| setting | d | arm | synthetic: route kept | synthetic: off both routes | synthetic: switch jerk | "
@@ -328,16 +393,26 @@ def multimodal_section(rows: list[dict]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------- Meta-World
-def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int) -> Path:
-    """`action-decoder train` defaults (plus --rtc-max-delay), once, under runs/<task>-<decoder>[-rtc<N>]."""
+def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False) -> str:
+    """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform, and
+    "bal" with balanced row weights."""
+    return f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}" \
+        if max_delay else ""
+
+
+def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform",
+                    balance_rows: bool = False) -> Path:
+    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows), once,
+    under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]]."""
     import subprocess
     import sys
 
-    out = runs / f"{task.split('/')[-1]}-{decoder}{f'-rtc{max_delay}' if max_delay else ''}"
+    out = runs / f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows)}"
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
                "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
-        cmd += ["--rtc-max-delay", str(max_delay)] if max_delay else []
+        cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
+        cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
         out.mkdir(parents=True, exist_ok=True)
         with open(out.with_suffix(".log"), "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
@@ -353,7 +428,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     from action_decoder.evaluate import make_policy_fn
 
     need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
-    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0) for k in sorted(need)}
+    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0, args.rtc_delay_dist,
+                                args.rtc_balance_rows) for k in sorted(need)}
     pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
     rows = []
     for arm in args.arms:
@@ -372,6 +448,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                          "boundaries": res["boundaries"], "episode_boundary_jerk": res["episode_boundary_jerk"],
                          "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
                          "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
+                         "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
+                         "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
                          "date": time.strftime("%Y-%m-%d"),
                          "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                     f"{torch.get_num_threads()} torch thread"})
@@ -395,7 +473,8 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                     f"Success noise: ±{100 * (0.25 / min(eps)) ** 0.5:.1f} points (binomial at 50 % over "
                     f"{min(eps)} episodes); two cells differ beyond noise above "
                     f"{2 * 2 ** 0.5 * 100 * (0.25 / min(eps)) ** 0.5:.0f} points. Boundary jerk as in the table "
-                    f"below, ± its standard error over episodes. Chunk ms: batch 1, the median CPU time of interleaved "
+                    f"below, ± its standard error over episodes. naive and guided use weights trained without RTC, "
+                    f"trained weights trained with rtc_max_delay = {MAX_DELAY} ({_dists(rows)}). Chunk ms: batch 1, the median CPU time of interleaved "
                     f"calls (one torch thread), the arm at d = {MAX_DELAY} against a plain chunk of the same weights. "
                     f"–: not measured.", "",
                     "| setting | d | arm | tasks | success | boundary jerk | chunk ms (plain → arm) |",
@@ -416,4 +495,38 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                 a_ms = statistics.mean(r["latency_ms"] for r in got)
                 lines.append(f"| {LABEL[setting]} | {d} | {arm} | {len(got)} | {succ:.1f} | {jerk:.4f} ± {se:.4f} | "
                              f"{p_ms:.1f} → {a_ms:.1f} ({a_ms / p_ms:.2f}×) |")
+    return lines + ["", *per_task_section(rows), ""]
+
+
+def per_task_section(rows: list[dict]) -> list[str]:
+    """Success per task (%) of each setting and arm, at each delay measured: the pooled rows above can mix task sets."""
+    tasks = sorted({r["task"] for r in rows})
+    delays = sorted({r["delay"] for r in rows})
+    by = {(r["task"], r["decoder"], r["steps"], r["arm"], r["delay"]): r for r in rows}
+    lines = ["### Success per task (%), at d = " + " / ".join(map(str, delays)), "",
+             "| setting | arm | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
+    for setting in SETTINGS:
+        for arm in ARMS:
+            if not any((t, *setting, arm, d) in by for t in tasks for d in delays):
+                continue
+            cell = lambda t: " / ".join("–" if (t, *setting, arm, d) not in by else       # noqa: E731
+                                        f"{100 * by[(t, *setting, arm, d)]['success_rate']:.0f}" for d in delays)
+            lines.append(f"| {LABEL[setting]} | {arm} | " + " | ".join(cell(t) for t in tasks) + " |")
+    return lines
+
+
+def cost_section(rows: list[dict]) -> list[str]:
+    """The cost part's rows: plain against trained-RTC chunks at batch 1, per device."""
+    if not rows:
+        return []
+    meta = sorted({(r["date"], r["machine"], r["command"]) for r in rows})
+    lines = ["## Chunk cost: plain against trained RTC", "",
+             *[f"Measured {d} ({m}) by `{c}`." for d, m, c in meta], "",
+             f"Batch 1, a network of `action-decoder train`'s default size (hidden 96, 3 layers, H = {H}, a 39-d "
+             f"state) with random weights, the trained arm at d = {MAX_DELAY}; median over interleaved calls (CPU: "
+             f"the process's CPU time; CUDA: wall time between synchronisations). Target: ≤ 1.05×.", "",
+             "| setting | device | calls | plain ms | trained ms | trained ÷ plain |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {r['machine']} | {r['reps']} | {r['plain_ms']:.3f} | "
+                     f"{r['trained_ms']:.3f} | {r['ratio']:.3f}× |")
     return lines + [""]

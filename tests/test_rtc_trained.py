@@ -12,7 +12,7 @@ from action_decoder.expert import ActionExpert
 from action_decoder.flows import (flow_matching_loss, meanflow_loss, sample_meanflow, sample_meanflow_prefix,
                                   sample_ode, sample_ode_prefix)
 from action_decoder.flows.losses import sample_meanflow_times
-from action_decoder.flows.rtc_trained import prefix_mask, sample_delays
+from action_decoder.flows.rtc_trained import delay_probs, prefix_mask, sample_delays, with_clean_prefix
 
 H, D = 8, 3
 
@@ -46,6 +46,32 @@ def test_per_token_times_equal_the_per_sample_path_when_all_times_are_equal():
         net(x, torch.rand(4, H + 1), r, state)
 
 
+def test_per_token_offsets_are_each_tokens_own_embedding_less_the_earliest():
+    """Any times per token (not only a prefix at 1): token j gets embed_t(t_j) − embed_t(min t) +
+    embed_r(r_j) − embed_r(min r), the t and r tokens the earliest times' embeddings; the sinusoidal
+    features of all those times are computed in one call (the second embedding reuses them)."""
+    from unittest import mock
+
+    from action_decoder.expert import embeddings
+
+    torch.manual_seed(1)
+    net = ActionExpert(DecoderConfig(decoder_type="mean_flow", state_dim=5, action_dim=D, action_chunk_size=H,
+                                     hidden_size=32, num_hidden_layers=1)).double()
+    t, r = torch.rand(3, H, dtype=torch.float64), torch.rand(3, H, dtype=torch.float64)
+    calls = []
+    real = embeddings.sinusoidal_features
+    with mock.patch.object(embeddings, "sinusoidal_features", lambda *a: (calls.append(1), real(*a))[1]):
+        t_tok, r_tok, off = net._token_times(t, r, 3, H)
+    assert len(calls) == 1
+    e_t = lambda v: net.t_embed(v.reshape(-1)).view(*v.shape, -1)         # noqa: E731
+    e_r = lambda v: net.r_embed(v.reshape(-1)).view(*v.shape, -1)         # noqa: E731
+    t0, r0 = t.amin(1), r.amin(1)
+    torch.testing.assert_close(t_tok, e_t(t0), rtol=0, atol=1e-12)
+    torch.testing.assert_close(r_tok, e_r(r0), rtol=0, atol=1e-12)
+    want = e_t(t) - e_t(t0)[:, None] + e_r(r) - e_r(r0)[:, None]
+    torch.testing.assert_close(off, want, rtol=0, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------- the losses
 def test_flow_matching_loss_scores_only_the_rows_after_the_clean_prefix():
     """Oracle: the velocity returns 0 on the live rows and 1e6 on the prefix; the loss is then the
@@ -71,6 +97,79 @@ def test_flow_matching_loss_scores_only_the_rows_after_the_clean_prefix():
     # rtc_max_delay = 0 is the plain loss, with the same draws.
     plain = flow_matching_loss(lambda x, t: torch.zeros_like(x), a, torch.Generator().manual_seed(3))
     torch.testing.assert_close(plain, (a - e).square().mean(), rtol=1e-12, atol=0)
+
+
+def test_delay_distributions_uniform_and_exp():
+    """P(d) on 0..max: uniform keeps torch.randint's draws; exp ∝ e^(−d) puts row 0 of a chunk in the loss of
+    1/Σe^(−d) = 64 % of the chunks at max_delay = 4 (uniform: 20 %)."""
+    g = lambda: torch.Generator().manual_seed(7)                              # noqa: E731
+    assert torch.equal(sample_delays(1000, 4, g()), torch.randint(0, 5, (1000,), generator=g()))
+    p = delay_probs(4, "exp")
+    torch.testing.assert_close(p, torch.exp(-torch.arange(5.0, dtype=torch.float64)) / sum(
+        torch.exp(torch.tensor(-k, dtype=torch.float64)) for k in range(5)))
+    assert abs(float(p[0]) - 0.6364) < 1e-4 and float(delay_probs(4)[0]) == 0.2
+    d = sample_delays(200_000, 4, g(), dist="exp")
+    freq = torch.bincount(d, minlength=5).double() / d.numel()
+    torch.testing.assert_close(freq, p, rtol=0, atol=4e-3)
+    assert int(d.min()) == 0 and int(d.max()) == 4
+    torch.testing.assert_close(delay_probs(4, "half_zero"), torch.tensor([0.5, 0.125, 0.125, 0.125, 0.125],
+                                                                       dtype=torch.float64))
+    half = torch.bincount(sample_delays(200_000, 4, g(), dist="half_zero"), minlength=5).double() / 200_000
+    torch.testing.assert_close(half, delay_probs(4, "half_zero"), rtol=0, atol=4e-3)
+    assert delay_probs(0, "half_zero").tolist() == [1.0]
+    # The share of chunks whose row j is in the loss, P(d <= j): exp keeps the first rows trained.
+    live = (~prefix_mask(d, H)).double().mean(0)                            # [H]
+    torch.testing.assert_close(live[:5], p.cumsum(0), rtol=0, atol=4e-3)
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'normal'"):
+        delay_probs(4, "normal")
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'normal'"):
+        flow_matching_loss(lambda x, t: x, torch.zeros(2, H, D), rtc_max_delay=2, rtc_delay_dist="normal")
+
+
+def test_flow_matching_loss_draws_its_delays_from_the_delay_distribution():
+    a = torch.randn(256, H, D, dtype=torch.float64)
+    oracle = lambda x, t: torch.zeros_like(x)                                # noqa: E731
+    loss = flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4, rtc_delay_dist="exp")
+    g = torch.Generator().manual_seed(3)
+    torch.rand(256, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    live = ~prefix_mask(sample_delays(256, 4, g, dist="exp"), H)
+    want = torch.stack([(a - e)[b][live[b]].square().mean() for b in range(256)]).mean()
+    torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
+
+
+def test_balanced_rows_weight_each_row_by_the_inverse_share_of_chunks_that_train_it():
+    """Row j is in the loss when d ≤ j: weights 1/P(d ≤ j) (uniform on 0..4: 5, 2.5, 5/3, 1.25, then 1) make
+    each row's expected weight over the delays the plain loss's, 1/(H·D) per entry."""
+    from action_decoder.flows.rtc_trained import row_weights
+
+    w = row_weights(4, H, "uniform")
+    torch.testing.assert_close(w, torch.tensor([5, 2.5, 5 / 3, 1.25, 1, 1, 1, 1], dtype=torch.float64))
+    torch.testing.assert_close(row_weights(4, H, "exp")[0], 1 / delay_probs(4, "exp")[0])
+    a = torch.randn(4096, H, D, dtype=torch.float64)
+    oracle = lambda x, t: torch.zeros_like(x)                                # noqa: E731
+    loss = flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4, rtc_balance_rows=True)
+    g = torch.Generator().manual_seed(3)
+    torch.rand(4096, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    live = ~prefix_mask(sample_delays(4096, 4, g), H)
+    sq = (a - e).square()
+    want = (sq * (live * w)[..., None]).mean((1, 2)).mean()
+    torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
+    # In expectation over the delays, every row weighs as in the plain loss.
+    torch.testing.assert_close((live * w).mean(0), torch.ones(H, dtype=torch.float64), rtol=0, atol=0.12)
+    # MeanFlow: the adaptive weight reads the balanced error; without a prefix it is the plain loss.
+    mf = dict(ratio_r_neq_t=0.0, adaptive_p=0.0, time_dist="uniform", rtc_max_delay=4)
+    u = lambda x, t, r: torch.zeros_like(x)                                  # noqa: E731
+    balanced = meanflow_loss(u, a, torch.Generator().manual_seed(3), rtc_balance_rows=True, **mf)
+    g = torch.Generator().manual_seed(3)
+    sample_meanflow_times(4096, 0.0, 0.4, 1.0, g, dtype=torch.float64, dist="uniform")
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    live = ~prefix_mask(sample_delays(4096, 4, g), H)
+    torch.testing.assert_close(balanced, ((a - e).square() * (live * w)[..., None]).mean((1, 2)).mean(),
+                               rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match="rtc_balance_rows: expected true or false, got 'yes'"):
+        DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_balance_rows="yes")
 
 
 @pytest.mark.parametrize("dudt", ["jvp", "finite_difference"])
@@ -117,6 +216,73 @@ def test_meanflow_loss_with_a_prefix_trains_every_target_and_tangent():
         flow_matching_loss(lambda x, t: x, torch.zeros(2, H, D), rtc_max_delay=H)
 
 
+def test_meanflow_jvp_through_the_expert_holds_the_prefix_fixed():
+    """The policy's MeanFlow head (clean-chunk output, per-token times through the expert's earliest-time
+    token and offsets) with a clean prefix: its JVP along (v, 1, 0), as the loss takes it, equals a central
+    difference of the network called directly on (clean prefix at t = r = 1 | the shifted live rows)."""
+    policy = tiny("mean_flow", rtc_max_delay=3, flow_prediction="sample").double()
+    B = 4
+    cond = {"state": torch.randn(B, 6, dtype=torch.float64), "ctrl_freq": None, "prefix": None}
+    keep = prefix_mask(torch.tensor([0, 1, 2, 3]), H)                      # one row per delay
+    a, e, v = (torch.randn(B, H, D, dtype=torch.float64) for _ in range(3))
+    t = torch.tensor([0.2, 0.0, 0.5, 0.1], dtype=torch.float64)
+    r = torch.tensor([0.7, 1.0, 0.5, 0.9], dtype=torch.float64)
+    z = (1 - t[:, None, None]) * e + t[:, None, None] * a
+    wrapped = with_clean_prefix(policy._flow_net)
+    u, dudt = torch.func.jvp(lambda x, tt, rr: wrapped(x, tt, rr, rtc_keep=keep, rtc_clean=a, **cond),
+                             (z, t, r), (v, torch.ones_like(t), torch.zeros_like(r)))
+
+    def direct(x, tt):                                                      # the prefix written in by hand
+        x = torch.where(keep[..., None], a, x)
+        return policy._flow_net(x, torch.where(keep, 1.0, tt[:, None].expand(B, H)),
+                                torch.where(keep, 1.0, r[:, None].expand(B, H)), **cond)
+
+    h = 1e-6
+    torch.testing.assert_close(u, direct(z, t), rtol=0, atol=1e-12)
+    fd = (direct(z + h * v, t + h) - direct(z - h * v, t - h)) / (2 * h)
+    live = ~keep
+    torch.testing.assert_close(dudt[live], fd[live], rtol=1e-5, atol=1e-6)
+    # The row without a prefix is the per-sample path (times [B]) exactly.
+    torch.testing.assert_close(u[0], policy._flow_net(z[:1], t[:1], r[:1], **{**cond, "state": cond["state"][:1]})[0],
+                               rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("decoder,steps", [("flow_matching", 2), ("mean_flow", 1)])
+def test_training_and_sampling_feed_the_network_the_same_prefix(decoder, steps):
+    """What the network sees on the committed rows: the normalised clean actions at t = r = 1, in training
+    (the chunk's own first d actions) and in sampling (prev_chunk's first d), and on the other rows the
+    sampler's times; MeanFlow's 1-step chunk runs at (t, r) = (0, 1) on the live rows."""
+    policy = tiny(decoder, rtc_max_delay=3)
+    seen = []
+    forward = policy.model.forward
+    policy.model.forward = lambda x, t, r, *a, **k: (seen.append((x.detach(), t.detach(), r.detach())),
+                                                     forward(x, t, r, *a, **k))[1]
+    state, prev = torch.randn(3, 6), torch.rand(3, H - 2, D) * 2 - 1
+    policy.predict_action_chunk({"state": state}, steps=steps, prev_chunk=prev, delay=2, rtc_mode="trained",
+                                generator=torch.Generator().manual_seed(0))
+    assert len(seen) == steps
+    clean = policy.normalizers["actions"].normalize(prev[:, :2])
+    for k, (x, t, r) in enumerate(seen):
+        torch.testing.assert_close(x[:, :2], clean)
+        assert bool((t[:, :2] == 1).all() and (r[:, :2] == 1).all()) and bool((t[:, 2:] == k / steps).all())
+        if decoder == "mean_flow":
+            assert bool((r[:, 2:] == (k + 1) / steps).all())
+    seen.clear()
+    actions = torch.rand(64, H, D) * 2 - 1
+    policy.train().compute_loss({"state": torch.randn(64, 6), "actions": actions}, torch.Generator().manual_seed(1))
+    normed = policy.normalizers["actions"].normalize(actions)
+    delays = set()
+    for x, t, r in seen:
+        if t.dim() == 1 or x.shape[0] != 64:
+            continue
+        keep = t == 1
+        d = keep.sum(1)                                                     # [B] the prefix is the first d rows
+        assert torch.equal(keep, prefix_mask(d, H)) and bool((r[keep] == 1).all())
+        torch.testing.assert_close(x[keep], normed[keep])
+        delays |= set(d.tolist())
+    assert delays == {0, 1, 2, 3}
+
+
 # ---------------------------------------------------------------------------- sampling
 @pytest.mark.parametrize("which", ["ode", "meanflow"])
 def test_prefix_samplers_feed_the_clean_prefix_on_every_step_and_keep_it(which):
@@ -141,6 +307,27 @@ def test_prefix_samplers_feed_the_clean_prefix_on_every_step_and_keep_it(which):
     plain = sample_ode(f, noise, steps) if which == "ode" else sample_meanflow(f, noise, steps)
     got = sample_ode_prefix(f, noise, empty, steps) if which == "ode" else sample_meanflow_prefix(f, noise, empty, steps)
     torch.testing.assert_close(got, plain, rtol=0, atol=1e-15)
+
+
+def test_prefix_step_times_are_built_once_and_rebuilt_if_a_callable_edits_them():
+    from action_decoder.flows.rtc_trained import prefix_steps
+
+    st = prefix_steps(3, 2, H, 2, "cpu", torch.float32)
+    assert prefix_steps(3, 2, H, 2, "cpu", torch.float32) is st                     # a chunk builds no times
+    want = torch.tensor([0.0, 1 / 3, 2 / 3])
+    for k, (t, r) in enumerate(zip(st.starts, st.ends)):
+        assert t.shape == r.shape == (2, H) and bool((t[:, :2] == 1).all() and (r[:, :2] == 1).all())
+        torch.testing.assert_close(t[:, 2:], want[k].expand(2, H - 2))
+        torch.testing.assert_close(r[:, 2:], (want[k] + 1 / 3).expand(2, H - 2))
+    assert st.live.flatten().tolist() == [0.0] * 2 + [1.0] * (H - 2)
+
+    def rude(x, t):
+        t.add_(0.5)                                                             # writes into its times
+        return torch.zeros_like(x)
+
+    sample_ode_prefix(rude, torch.zeros(2, H, D), torch.zeros(2, 2, D), 3)
+    fresh = prefix_steps(3, 2, H, 2, "cpu", torch.float32)
+    assert fresh is not st and float(fresh.starts[0][0, 2]) == 0.0
 
 
 @pytest.mark.parametrize("decoder,steps", [("flow_matching", 10), ("mean_flow", 1), ("mean_flow", 2)])
@@ -225,11 +412,24 @@ class _nothing:
 
 
 # ---------------------------------------------------------------------------- config and CLI
+def test_config_saves_rtc_delay_dist_and_format_7_reads_uniform(tmp_path):
+    cfg = DecoderConfig(decoder_type="flow_matching", rtc_max_delay=4, rtc_delay_dist="exp")
+    cfg.to_json(tmp_path / "c.json")
+    saved = json.loads((tmp_path / "c.json").read_text())
+    assert saved["rtc_delay_dist"] == "exp" and DecoderConfig.from_json(tmp_path / "c.json").rtc_delay_dist == "exp"
+    old = {k: v for k, v in saved.items() if k not in ("rtc_delay_dist", "rtc_balance_rows")}
+    (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 7}))
+    assert DecoderConfig.from_json(tmp_path / "old.json").rtc_delay_dist == "uniform"
+    assert saved["rtc_balance_rows"] is False and DecoderConfig.from_json(tmp_path / "old.json").rtc_balance_rows is False
+    with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'zipf'"):
+        DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_delay_dist="zipf")
+
+
 def test_config_saves_rtc_max_delay_and_older_formats_read_zero(tmp_path):
     cfg = DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4)
     cfg.to_json(tmp_path / "c.json")
     saved = json.loads((tmp_path / "c.json").read_text())
-    assert CONFIG_FORMAT_VERSION == 7 and saved["rtc_max_delay"] == 4
+    assert CONFIG_FORMAT_VERSION == 8 and saved["rtc_max_delay"] == 4
     assert DecoderConfig.from_json(tmp_path / "c.json").rtc_max_delay == 4
     old = {k: v for k, v in saved.items() if k != "rtc_max_delay"}
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 6}))
@@ -259,11 +459,13 @@ def test_cli_round_trip_train_rtc_max_delay_then_eval_rtc_mode(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "run"
     assert cli.main(["train", "--task", "metaworld/reach", "--decoder", "mean_flow", "--rtc-max-delay", "2",
+                     "--rtc-delay-dist", "exp", "--rtc-balance-rows",
                      "--steps", "2", "--demos", "1", "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1",
                      "--eval-episodes", "0", "--no-progress", "--checkpoint-every", "2", "--log-every", "1",
                      "--output-dir", str(out)]) == 0
     ckpt = out / "final"
-    assert json.loads((ckpt / "config.json").read_text())["rtc_max_delay"] == 2
+    saved = json.loads((ckpt / "config.json").read_text())
+    assert saved["rtc_max_delay"] == 2 and saved["rtc_delay_dist"] == "exp" and saved["rtc_balance_rows"] is True
     args = ["eval", "--checkpoint", str(ckpt), "--episodes", "1", "--num-envs", "1", "--max-steps", "12",
             "--delay", "2", "--rtc"]
     for mode in ("trained", "guided"):
@@ -329,3 +531,23 @@ def test_obstacle_episode_with_delay_runs_the_scripted_expert_to_the_goal_on_one
     for d in (0, 2, 4):
         res = obstacle_episode(Expert(), 1, "trained", d, layout=1_000_000, noise_seed=0)
         assert res["success"] and not res["collided"] and res["checks"] and all(res["checks"])
+
+
+def test_benchmark_cost_part_times_plain_and_trained_chunks_side_by_side(tmp_path):
+    from benchmarks.rtc import main
+
+    out = tmp_path / "cost.json"
+    main(["--part", "cost", "--settings", "mean_flow:1", "flow_matching:10", "--latency-reps", "2",
+          "--cost-json", str(out)])
+    rows = json.loads(out.read_text())
+    assert [(r["decoder"], r["steps"]) for r in rows] == [("mean_flow", 1), ("flow_matching", 10)]
+    assert all(r["plain_ms"] > 0 and r["trained_ms"] > 0 and r["delay"] == 4 and r["clock"] == "CPU time"
+               for r in rows)
+
+
+def test_benchmark_names_the_rtc_weights_by_their_delay_distribution():
+    from benchmarks.rtc_modes import _dists, rtc_suffix
+
+    assert rtc_suffix(0, "exp") == "" and rtc_suffix(4, "uniform") == "-rtc4" and rtc_suffix(4, "exp") == "-rtc4exp"
+    rows = [{"arm": "trained", "rtc_delay_dist": "exp"}, {"arm": "trained"}, {"arm": "naive"}]
+    assert _dists(rows) == "delays drawn exp and uniform on 0..4" and _dists(rows[:1]) == "delays drawn exp on 0..4"

@@ -27,6 +27,7 @@ MEANFLOW_TARGETS = ("identity", "split")
 NORMALIZATION_MODES = ("mean_std", "min_max", "identity")
 RTC_SCHEDULES = ("exp", "linear", "ones", "zeros")     # flows.rtc.rtc_weights
 RTC_HORIZONS = ("auto", "overlap", "execution")        # which rows of prev_chunk RTC guides
+RTC_DELAY_DISTS = ("uniform", "exp", "half_zero")      # flows.rtc_trained.delay_probs
 IMAGE_ENCODERS = ("conv", "resnet18")                   # expert/image_encoder.py
 CAMERA_PREFIX = "observation.images."                   # LeRobot's camera feature keys
 SINGLE_CAMERA_KEY = "observation.image"                 # LeRobot's key for a dataset's only camera (pusht, xarm)
@@ -50,7 +51,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     5: {"meanflow_target": "identity"},
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
-    8: {"n_obs_steps": 1},
+    8: {"n_obs_steps": 1, "rtc_delay_dist": "uniform", "rtc_balance_rows": False},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -158,10 +159,18 @@ class DecoderConfig:
     whose guidance pulls the chunk itself (docs/benchmarks/rtc.md measures both)."""
     rtc_max_delay: int = 0
     """Training-time RTC (`flows/rtc_trained.py`): the largest delay d, in control steps, whose committed
-    prefix the network was trained to continue (each training chunk's first d ~ U{0..max} actions given
-    clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
+    prefix the network was trained to continue (each training chunk's first d actions, d on 0..max from
+    `rtc_delay_dist`, given clean at t = 1, the loss on the rest); 0: not trained so. Sampling with a previous chunk then feeds
     the prefix in (`rtc_mode="trained"`) instead of guiding. Below action_chunk_size; not for DDPM.
     Format-6 files, older than the field, read as 0."""
+    rtc_delay_dist: str = "exp"
+    """How training-time RTC draws each chunk's delay d on 0..rtc_max_delay (`flows.rtc_trained.delay_probs`):
+    "exp" (P(d) ∝ e^(−d): short prefixes more often, so the first rows, which a chunk without a prefix
+    executes, stay in the loss of most chunks) or "uniform" (docs/benchmarks/rtc.md compares them).
+    Format-7 files, older than the field, read as "uniform"."""
+    rtc_balance_rows: bool = False
+    """Training-time RTC: weight row j of the prefix-masked loss by 1/P(d ≤ j), so that each row's expected
+    weight is the plain loss's (row j is in the loss only when d ≤ j). Format-7 files read False."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""
@@ -270,6 +279,9 @@ class DecoderConfig:
         _choice("meanflow_sde_velocity", self.meanflow_sde_velocity, MEANFLOW_VELOCITIES)
         _choice("rtc_schedule", self.rtc_schedule, RTC_SCHEDULES)
         _choice("rtc_horizon", self.rtc_horizon, RTC_HORIZONS)
+        _choice("rtc_delay_dist", self.rtc_delay_dist, RTC_DELAY_DISTS)
+        if not isinstance(self.rtc_balance_rows, bool):
+            raise ValueError(f"rtc_balance_rows: expected true or false, got {self.rtc_balance_rows!r}")
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
         if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
             raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "

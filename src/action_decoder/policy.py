@@ -275,7 +275,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         cfg = self.config
         if cfg.decoder_type == "flow_matching":
             loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond,
-                                      rtc_max_delay=cfg.rtc_max_delay)
+                                      rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
+                                      rtc_balance_rows=cfg.rtc_balance_rows)
         elif cfg.decoder_type == "mean_flow":
             weights = self.model.head.weight.dtype
             if (cfg.meanflow_target == "identity" and cfg.meanflow_dudt == "finite_difference"
@@ -287,7 +288,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
                                  dudt=cfg.meanflow_dudt, target=cfg.meanflow_target,
-                                 rtc_max_delay=cfg.rtc_max_delay)
+                                 rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
+                                      rtc_balance_rows=cfg.rtc_balance_rows)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)

@@ -114,6 +114,10 @@ class TrainConfig:
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     rtc_max_delay: int = 0
     """Training-time real-time chunking: the largest committed prefix, in actions, the policy learns to continue (0: off)."""
+    rtc_delay_dist: Literal["exp", "half_zero", "uniform"] = "exp"
+    """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (exp: P(d) ∝ e^(−d); half_zero: 0 for half the chunks, else uniform; uniform)."""
+    rtc_balance_rows: bool = False
+    """Training-time RTC: weight row j of the loss by 1/P(d ≤ j), the share of chunks whose loss covers it."""
     checkpoint_every: int = 500
     """Steps between resumable checkpoints."""
     log_every: int = 25
@@ -346,6 +350,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
         flow_prediction=flow_prediction(cfg), rtc_max_delay=cfg.rtc_max_delay,
+        rtc_delay_dist=cfg.rtc_delay_dist, rtc_balance_rows=cfg.rtc_balance_rows,
         extra={"tasks": tasks, "train": asdict(cfg),
                **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
 

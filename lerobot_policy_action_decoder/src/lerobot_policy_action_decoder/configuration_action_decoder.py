@@ -100,6 +100,8 @@ class ActionDecoderConfig(PreTrainedConfig):
     rtc_schedule: str = "exp"
     rtc_horizon: str = "auto"
     rtc_max_delay: int = 0
+    rtc_delay_dist: str = "exp"
+    rtc_balance_rows: bool = False
     default_ctrl_freq: float = 10.0
 
     normalization_mapping: dict[str, NormalizationMode] = field(

@@ -128,9 +128,8 @@ class ActionExpert(nn.Module):
         if t.dim() == 1 and r.dim() == 1:
             t_tok, r_tok = self.t_embed(t), self.r_embed(r)                       # [B, hidden] each
         else:
-            t_tok, t_off = self._token_times(self.t_embed, t, b, horizon)
-            r_tok, r_off = self._token_times(self.r_embed, r, b, horizon)
-            actions = actions + (t_off + r_off)
+            t_tok, r_tok, offsets = self._token_times(t, r, b, horizon)
+            actions = actions + offsets
         if self.obs_step_embed is None:
             tokens = torch.cat([
                 torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq),
@@ -182,17 +181,19 @@ class ActionExpert(nn.Module):
             raise ValueError(f"{name}: expected shape [{b}] or [{b}, {horizon}] (per action token) or a scalar, "
                              f"got {list(v.shape)}") from None
 
-    @staticmethod
-    def _token_times(embed: ScalarEmbedding, v: Tensor, b: int, horizon: int) -> tuple[Tensor, Tensor]:
-        """(token [B, hidden], offsets [B, H, hidden]) of times per token `v` ([B] or [B, H]): the token
-        embeds each sample's earliest time; an action token whose time differs from it is offset by
-        embed(own) − embed(earliest), one where its time equals it by exactly 0."""
-        full = v[:, None].expand(b, horizon) if v.dim() == 1 else v                  # [B, H]
-        first = full.amin(1)                                                        # [B]
-        emb = embed(torch.cat([first, full.reshape(-1)]))                           # [B + B·H, hidden]
-        tok = emb[:b]
-        off = (emb[b:].view(b, horizon, -1) - tok[:, None]) * (full != first[:, None])[..., None]
-        return tok, off
+    def _token_times(self, t: Tensor, r: Tensor, b: int, horizon: int) -> tuple[Tensor, Tensor, Tensor]:
+        """(t token [B, hidden], r token [B, hidden], offsets [B, H, hidden]) of times per token ([B] or
+        [B, H] each): each token embeds its sample's earliest time, and action token j is offset by
+        embed_t(t_j) − embed_t(min t) + embed_r(r_j) − embed_r(min r), 0 where its times are the earliest.
+        The two embeddings share their periods, so the sinusoidal features of all 2·B·(1 + H) times are
+        computed once: the per-token path costs a handful of tensor operations over the per-sample one."""
+        tr = torch.stack([v[:, None].expand(b, horizon) if v.dim() == 1 else v for v in (t, r)])   # [2, B, H]
+        times = torch.cat([tr.amin(2, keepdim=True), tr], 2)                                # [2, B, 1 + H]
+        feats = self.t_embed.features(times.reshape(-1)).view(2, b * (1 + horizon), -1)    # [2, B·(1 + H), hidden]
+        emb_t = self.t_embed.project(feats[0]).view(b, 1 + horizon, -1)                    # [B, 1 + H, hidden]
+        emb_r = self.r_embed.project(feats[1]).view(b, 1 + horizon, -1)
+        both = emb_t + emb_r
+        return emb_t[:, 0], emb_r[:, 0], both[:, 1:] - both[:, :1]
 
     @staticmethod
     def _per_sample(v: Tensor | float, b: int, device: torch.device, name: str) -> Tensor:

@@ -40,5 +40,12 @@ class ScalarEmbedding(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """[B] -> [B, hidden_size] in the MLP's dtype."""
-        feats = sinusoidal_features(x, self.hidden_size, self.min_period, self.max_period)
+        return self.project(self.features(x))
+
+    def features(self, x: Tensor) -> Tensor:
+        """[N] -> the sinusoidal features [N, hidden_size] the MLP reads (shared by embeddings of equal periods)."""
+        return sinusoidal_features(x, self.hidden_size, self.min_period, self.max_period)
+
+    def project(self, feats: Tensor) -> Tensor:
+        """Features [N, hidden_size] -> tokens [N, hidden_size] in the MLP's dtype."""
         return self.mlp(feats.to(self.mlp[0].weight.dtype))

@@ -15,7 +15,8 @@ from torch import Tensor
 
 from ..config import MEANFLOW_DUDT
 from .paths import AvgVelocity, Velocity, check_chunk, checked_call, interpolate
-from .rtc_trained import CLEAN, KEEP, check_max_delay, prefix_mask, sample_delays, with_clean_prefix
+from .rtc_trained import (CLEAN, DELAY_DISTS, KEEP, check_max_delay, prefix_mask, row_weights, sample_delays,
+                          with_clean_prefix)
 
 
 def _map_tensors(obj: Any, fn) -> Any:
@@ -41,39 +42,50 @@ def _bcast(t: Tensor, like: Tensor) -> Tensor:
 
 
 def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Generator],
-                 cond: Optional[Mapping[str, Any]]):
+                 cond: Optional[Mapping[str, Any]], delay_dist: str = "uniform", balance_rows: bool = False):
     """Training-time RTC (`flows.rtc_trained`): (fn, cond, live [B, H] or None). With max_delay > 0,
-    row b's first d_b ~ U{0..max_delay} actions are given clean at t = r = 1 (`with_clean_prefix`,
+    row b's first d_b actions (d_b on 0..max_delay from `delay_dist`) are given clean at t = r = 1 (`with_clean_prefix`,
     its mask and clean actions travel in `cond` so that every row split slices them too) and `live`
-    marks the other rows, the ones the loss covers."""
+    marks the other rows, the ones the loss covers: a bool mask, or with `balance_rows` their weights
+    1/P(d ≤ j) (`row_weights`; 0 on the prefix), so that each row's expected weight is the plain loss's."""
     check_max_delay(max_delay, a.shape[1])
+    if delay_dist not in DELAY_DISTS:
+        raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {delay_dist!r}")
     if not max_delay:
         return fn, cond, None
-    keep = prefix_mask(sample_delays(a.shape[0], max_delay, generator, a.device), a.shape[1])   # [B, H]
-    return with_clean_prefix(fn), {**(cond or {}), KEEP: keep, CLEAN: a}, ~keep
+    keep = prefix_mask(sample_delays(a.shape[0], max_delay, generator, a.device, delay_dist), a.shape[1])  # [B, H]
+    live = ~keep
+    if balance_rows:
+        live = live.to(a.dtype) * row_weights(max_delay, a.shape[1], delay_dist).to(a.device, a.dtype)   # [B, H]
+    return with_clean_prefix(fn), {**(cond or {}), KEEP: keep, CLEAN: a}, live
 
 
 def _masked_mean(sq: Tensor, live: Optional[Tensor]) -> Tensor:
-    """Per-row mean of sq [B, H, D] over H×D, or over the live rows' entries ([B, H] mask)."""
+    """Per-row mean of sq [B, H, D] over H×D, or over the live rows' entries ([B, H] bool mask), or the
+    weighted sum over H×D divided by H×D ([B, H] float weights)."""
     if live is None:
         return sq.mean((1, 2))
+    if live.is_floating_point():
+        return (sq * live[..., None].to(sq.dtype)).mean((1, 2))
     w = live[..., None].to(sq.dtype)
     return (sq * w).sum((1, 2)) / (w.sum((1, 2)) * sq.shape[2])
 
 
 def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[torch.Generator] = None,
-                       cond: Optional[Mapping[str, Any]] = None, rtc_max_delay: int = 0) -> Tensor:
+                       cond: Optional[Mapping[str, Any]] = None, rtc_max_delay: int = 0,
+                       rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False) -> Tensor:
     """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries.
 
     `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
-    d ~ U{0..rtc_max_delay} actions are given clean at t = 1 (the velocity then takes times per
-    token [B, H]); the loss is the mean over the other rows' entries, per chunk, then over chunks."""
+    d actions (d on 0..rtc_max_delay from `rtc_delay_dist`, `flows.rtc_trained.DELAY_DISTS`) are given clean at t = 1 (the velocity then takes times per
+    token [B, H]); the loss is the mean over the other rows' entries, per chunk, then over chunks
+    (`rtc_balance_rows`: row j's entries weighted 1/P(d ≤ j) and summed, over H×D)."""
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions
     t = torch.rand(a.shape[0], generator=generator, device=a.device, dtype=a.dtype)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z = interpolate(e, a, t)
-    fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond)
+    fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist, rtc_balance_rows)
     v = checked_call(lambda x, tt: fn(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
     if live is None:
         return (v - (a - e)).square().mean()
@@ -194,7 +206,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   time_mean: float = 0.4, time_std: float = 1.0, adaptive_p: float = 0.5,
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
                   one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
-                  fd_one_call: Optional[bool] = None, target: str = "identity", rtc_max_delay: int = 0) -> Tensor:
+                  fd_one_call: Optional[bool] = None, target: str = "identity", rtc_max_delay: int = 0,
+                  rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -233,9 +246,9 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     calls over the n rows, no du/dt.
 
     `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
-    d ~ U{0..rtc_max_delay} actions are given clean at t = r = 1 in every call (held fixed along
+    d actions (d on 0..rtc_max_delay from `rtc_delay_dist`) are given clean at t = r = 1 in every call (held fixed along
     the du/dt tangent and in the split's intermediate point), and each row's error is the mean over
-    its other rows' entries.
+    its other rows' entries (`rtc_balance_rows`: weighted 1/P(d ≤ j), summed over H×D).
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
@@ -256,7 +269,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                                     time_dist, one_step_share)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e                                   # [B, H, D] each
-    avg_velocity, cond, live = clean_prefix(avg_velocity, a, rtc_max_delay, generator, cond)
+    avg_velocity, cond, live = clean_prefix(avg_velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist,
+                                            rtc_balance_rows)
     if tangent == "boundary" and n > 0:
         c = slice_cond(cond, slice(0, n))
         with torch.no_grad():

@@ -4,9 +4,11 @@ The network learns to continue a committed prefix. In training, the first d acti
 are given clean — at flow time t = 1 (and r = 1 for MeanFlow), the data end of our convention —
 while the rest of the chunk is noised at the sampled time as usual, and the loss covers only the
 rest. The network therefore needs times per action token, [B, H] (`ActionExpert.forward`).
-d is drawn per training row, uniformly on 0..max_delay (`sample_delays`): every delay the
-controller may meet, d = 0 included, is seen equally often, so the same weights sample
-without a prefix as well.
+d is drawn per training row from a distribution on 0..max_delay (`sample_delays`, `DELAY_DISTS`).
+Row j of a chunk is in the loss only when d ≤ j, so the first rows — the ones a chunk without a
+prefix executes — learn from a share P(d ≤ j) of the chunks: "uniform" gives row 0 a share
+1/(max_delay + 1); "exp" (weights ∝ e^(−d), the training-time RTC paper's recipe in simulation)
+gives it 1/Σe^(−d) (0.64 at max_delay = 4), so the weights also sample without a prefix.
 
 At inference the d actions the robot executes while the next chunk is computed are fed in as the
 clean prefix at every step of the sampler (`sample_ode_prefix`, `sample_meanflow_prefix`): the
@@ -19,14 +21,18 @@ DDPM is not offered (the policy refuses it): its sampler, DPM-Solver++, runs on 
 
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
 from torch import Tensor
 
-from .paths import AvgVelocity, Velocity, check_chunk, checked_call, compute_dtype, resolve_steps
+from ..config import RTC_DELAY_DISTS
+from .paths import AvgVelocity, Velocity, check_chunk, check_steps, checked_call, compute_dtype, time_grid
 
 KEEP, CLEAN = "rtc_keep", "rtc_clean"      # the keyword arguments `with_clean_prefix` consumes
+DELAY_DISTS = RTC_DELAY_DISTS             # P(d) on 0..max_delay: ∝ 1, ∝ e^(−d), or half at 0 (`delay_probs`)
 
 
 def check_max_delay(max_delay, horizon: int, name: str = "rtc_max_delay") -> int:
@@ -37,10 +43,33 @@ def check_max_delay(max_delay, horizon: int, name: str = "rtc_max_delay") -> int
     return max_delay
 
 
+def delay_probs(max_delay: int, dist: str = "uniform") -> Tensor:
+    """P(d) [max_delay + 1] (float64) on 0..max_delay: "uniform"; "exp" (∝ e^(−d)); "half_zero" (d = 0 for
+    half the chunks, the other half uniform on 1..max_delay)."""
+    if dist not in DELAY_DISTS:
+        raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {dist!r}")
+    d = torch.arange(max_delay + 1, dtype=torch.float64)
+    if dist == "half_zero" and max_delay:
+        return torch.where(d == 0, torch.full_like(d, 0.5), torch.full_like(d, 0.5 / max_delay))
+    w = torch.exp(-d) if dist == "exp" else torch.ones_like(d)
+    return w / w.sum()
+
+
+def row_weights(max_delay: int, horizon: int, dist: str = "uniform") -> Tensor:
+    """1 / P(d ≤ j) [H] (float64): the weight that makes row j's expected share of a prefix-masked loss that
+    of the plain loss (row j is in the loss only when d ≤ j; rows j ≥ max_delay always are)."""
+    cdf = delay_probs(max_delay, dist).cumsum(0)                                   # [max_delay + 1]
+    return 1.0 / cdf[torch.arange(horizon).clamp_max(max_delay)]
+
+
 def sample_delays(batch: int, max_delay: int, generator: Optional[torch.Generator] = None,
-                  device=None) -> Tensor:
-    """Delays d [B] (int64), uniform on 0..max_delay."""
-    return torch.randint(0, max_delay + 1, (batch,), generator=generator, device=device)
+                  device=None, dist: str = "uniform") -> Tensor:
+    """Delays d [B] (int64) on 0..max_delay from `delay_probs(max_delay, dist)`."""
+    if dist == "uniform":                  # the same draws as before the option existed
+        return torch.randint(0, max_delay + 1, (batch,), generator=generator, device=device)
+    u = torch.rand(batch, generator=generator, device=device, dtype=torch.float64)              # [B]
+    cdf = delay_probs(max_delay, dist).cumsum(0).to(u.device)                                 # [max_delay + 1]
+    return torch.searchsorted(cdf, u, right=True).clamp_max(max_delay)
 
 
 def prefix_mask(delays: Tensor, horizon: int) -> Tensor:
@@ -66,32 +95,61 @@ def with_clean_prefix(fn: Callable[..., Tensor]) -> Callable[..., Tensor]:
     return call
 
 
-def _prefixed_start(noise: Tensor, prefix: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
-    """(x0 [B, H, D], keep [B, H], clean [B, H, D]) for a normalised prefix [B, d, D]."""
+@dataclass(frozen=True)
+class PrefixSteps:
+    """The prefix samplers' per-step inputs for d committed rows, built once per (K, B, H, d, device, dtype):
+    times per token [B, H] (1 on the committed rows, the step's start or end time elsewhere), Δt as
+    host floats, and `live` [1, H, 1] (0 on the committed rows, which the updates leave clean)."""
+
+    starts: tuple
+    ends: tuple
+    dts: tuple
+    live: Tensor
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_prefix_steps(steps: int, batch: int, horizon: int, delay: int, device: torch.device,
+                         dtype: torch.dtype) -> PrefixSteps:
+    # Shared between calls, as `paths._uniform_steps`: a prefix-fed chunk builds no time tensors per step.
+    with torch.inference_mode(False):
+        grid = time_grid(steps, device=device, dtype=dtype)                            # [K + 1]
+        keep = torch.arange(horizon, device=device) < delay                            # [H]
+        per_token = lambda g: torch.where(keep, 1.0, g[:, None, None]).expand(-1, batch, -1).contiguous()  # noqa: E731
+        starts, ends = per_token(grid[:-1]), per_token(grid[1:])                      # [K, B, H] each
+        live = (~keep).to(dtype)[None, :, None]                                        # [1, H, 1]
+        return PrefixSteps(tuple(starts.unbind(0)), tuple(ends.unbind(0)), tuple(grid.diff().tolist()), live)
+
+
+def prefix_steps(steps: int, batch: int, horizon: int, delay: int, device, dtype: torch.dtype) -> PrefixSteps:
+    """`_cached_prefix_steps`, rebuilt if a callable wrote into its tensors (the cache is never handed on edited)."""
+    check_steps(steps)
+    st = _cached_prefix_steps(steps, batch, horizon, delay, torch.device(device), dtype)
+    if st.starts[0]._version or st.ends[0]._version or st.live._version:
+        _cached_prefix_steps.cache_clear()
+        st = _cached_prefix_steps(steps, batch, horizon, delay, torch.device(device), dtype)
+    return st
+
+
+def _prefixed_start(noise: Tensor, prefix: Tensor, dtype: torch.dtype) -> Tensor:
+    """x0 [B, H, D]: the normalised prefix [B, d, D] followed by the noise's other rows."""
     check_chunk(noise, "noise")
     B, H, D = noise.shape
     if not isinstance(prefix, Tensor) or prefix.dim() != 3 or prefix.shape[0] != B or prefix.shape[2] != D \
             or prefix.shape[1] >= H:
         got = tuple(prefix.shape) if isinstance(prefix, Tensor) else type(prefix).__name__
         raise ValueError(f"prefix: expected the committed actions [B={B}, d < {H}, D={D}], got {got}")
-    d = prefix.shape[1]
-    keep = prefix_mask(torch.full((B,), d, device=noise.device), H)                  # [B, H]
-    clean = torch.zeros(B, H, D, device=noise.device, dtype=dtype)
-    clean[:, :d] = prefix.to(dtype)
-    x = torch.where(keep[..., None], clean, noise.to(dtype))
-    return x, keep, clean
+    return torch.cat([prefix.to(dtype), noise[:, prefix.shape[1]:].to(dtype)], 1)
 
 
 def sample_ode_prefix(velocity: Velocity, noise: Tensor, prefix: Tensor, steps: int = 10) -> Tensor:
     """Euler from noise (t = 0) to data (t = 1) with the committed rows `prefix` [B, d, D] held clean at
     t = 1 on every step (`velocity` takes times per token [B, H]); K network calls, the prefix exact."""
     dtype = compute_dtype(noise)
-    x, keep, clean = _prefixed_start(noise, prefix, dtype)
-    st = resolve_steps(steps, None, noise, dtype)
-    live = (~keep)[..., None].to(dtype)                # the prefix rows of x stay clean: they never move
+    x = _prefixed_start(noise, prefix, dtype)
+    st = prefix_steps(steps, *noise.shape[:2], prefix.shape[1], noise.device, dtype)
     for t, dt in zip(st.starts, st.dts):
-        v = checked_call(velocity, x, token_times(t, keep), dtype=dtype, name="velocity")
-        x = torch.addcmul(x, v, live, value=dt)
+        v = checked_call(velocity, x, t, dtype=dtype, name="velocity")
+        x = torch.addcmul(x, v, st.live, value=dt)          # the committed rows stay clean: they never move
     return x.to(noise.dtype)
 
 
@@ -99,11 +157,9 @@ def sample_meanflow_prefix(avg_velocity: AvgVelocity, noise: Tensor, prefix: Ten
     """MeanFlow's K-step sampler x_r = x_t + (r − t)·u(x_t, t, r) with the committed rows `prefix`
     [B, d, D] held clean at t = r = 1; K network calls (one at K = 1), the prefix exact."""
     dtype = compute_dtype(noise)
-    x, keep, clean = _prefixed_start(noise, prefix, dtype)
-    st = resolve_steps(steps, None, noise, dtype)
-    live = (~keep)[..., None].to(dtype)
+    x = _prefixed_start(noise, prefix, dtype)
+    st = prefix_steps(steps, *noise.shape[:2], prefix.shape[1], noise.device, dtype)
     for t, r, dt in zip(st.starts, st.ends, st.dts):
-        u = checked_call(avg_velocity, x, token_times(t, keep), token_times(r, keep), dtype=dtype,
-                         name="avg_velocity")
-        x = torch.addcmul(x, u, live, value=dt)
+        u = checked_call(avg_velocity, x, t, r, dtype=dtype, name="avg_velocity")
+        x = torch.addcmul(x, u, st.live, value=dt)
     return x.to(noise.dtype)
