@@ -276,12 +276,8 @@ def returns_to_go(rewards: torch.Tensor, last: torch.Tensor, gamma: float) -> to
     """[N] discounted return each decision earned until its episode ended, over decisions stored
     episode by episode in time order (`last` marks each episode's final decision): what a critic's
     value of the behaviour policy should match (nothing is bootstrapped past an episode's end)."""
-    out = torch.zeros_like(rewards)
-    running = torch.zeros(())
-    for i in range(len(rewards) - 1, -1, -1):
-        running = rewards[i] + (0.0 if last[i] else gamma * running)
-        out[i] = running
-    return out
+    zeros = torch.zeros_like(rewards)
+    return gae(rewards, zeros, zeros, last, last, gamma, 1.0)[0]     # λ = 1 with no values: the returns
 
 
 def episode_ends(ro) -> torch.Tensor:
