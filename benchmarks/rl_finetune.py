@@ -42,7 +42,7 @@ RUN_FIELDS = RUN_OPTIONS | {"task", "algo", "sigma", "seed"}
 """`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
 BC_DEMOS, BC_STEPS, CPU_MINUTES = 3, 2000, 45.0
 """The protocol's BC (demonstrations, training steps) and fine-tuning budget (CPU-minutes per run)."""
-ENV_STEPS = {"dsrl": 200_000}
+ENV_STEPS = {"dsrl": 100_000}
 """Environment steps per run where the protocol caps them (DSRL); the others stop at the CPU budget."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
@@ -331,6 +331,8 @@ def _num(r: dict, key: str, scale: float, fmt: str) -> str:
 
 GAIN_MARK = 15.0
 """The mean gain (points) whose first crossing in environment steps measures sample efficiency."""
+SEED_SPREAD = 20.0
+"""Points two fine-tuning seeds of a task may differ by and count as agreeing (the reliability count)."""
 PPO_ITERATION_STEPS, PPO_EVAL_EVERY = 32 * 200, 10
 """PPO's default iteration (32 envs × the 200-step cap; dense rewards run every episode to the cap) and the
 benchmark's `--eval-every`: rows recorded without env steps in their curve had their evaluations there."""
@@ -377,15 +379,34 @@ def summary(rows: list[dict]) -> list[str]:
     for (h, dec, how), gains in sorted(groups.items()):
         lines.append(f"- {h} half, {dec} ({how}): mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(gains)} task(s) (seed 0)")
+    reached: dict = {}                      # (half, decoder) -> [(recipe, env steps to the mark or None, most env steps)]
     for (h, dec, how), rs in sorted(every.items()):
         gains = [_gain(r) for r in rs]
         to_mark = steps_to_mean_gain(rs)
+        known = all(curve_steps(r) for r in rs)
         when = f"first reached at {to_mark} env steps" if to_mark is not None else \
-            "never reached in the runs' evaluations" if all(curve_steps(r) for r in rs) else \
+            "never reached in the runs' evaluations" if known else \
             "not known (evaluations recorded without env steps)"
+        per_task: dict = {}
+        for r in rs:
+            per_task.setdefault(r["task"], []).append(_gain(r))
+        paired = [g for g in per_task.values() if len(g) > 1]
+        close = (f"; the seeds of {sum(max(g) - min(g) <= SEED_SPREAD for g in paired)} of {len(paired)} task(s) "
+                 f"within {SEED_SPREAD:g} points" if paired else "")
         lines.append(f"- {h} half, {dec} ({how}), every seed: mean gain {sum(gains) / len(gains):+.1f} points over "
-                     f"{len(rs)} run(s); {sum(g < -5 for g in gains)} end more than 5 points below BC; mean gain "
+                     f"{len(rs)} run(s); {sum(g < -5 for g in gains)} end more than 5 points below BC{close}; mean gain "
                      f"+{GAIN_MARK:g} {when}")
+        if known:
+            reached.setdefault((h, dec), []).append((how, to_mark, max(r["env_steps"] for r in rs)))
+    for (h, dec), marks in sorted(reached.items()):
+        hit = [(how, x) for how, x, _ in marks if x is not None]
+        if len(marks) < 2 or not hit:
+            continue
+        best_how, best = min(hit, key=lambda m: m[1])
+        others = [f"{how} " + (f"{x} ({x / best:.1f}×)" if x is not None else f"never within {most} ({most / best:.0f}× or more)")
+                  for how, x, most in marks if how != best_how]
+        lines.append(f"- {h} half, {dec}: env steps to a mean gain of +{GAIN_MARK:g}: {best_how} {best}; "
+                     + "; ".join(others))
     spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
     for (task, dec, how), gains in spread:
         lines.append(f"- noise: {task} {dec} ({how}) gains over fine-tuning seeds: "

@@ -382,9 +382,36 @@ def test_rl_rows_keep_each_fine_tuning_seed_and_report_their_spread(monkeypatch,
     # at 8000 env steps the seeds' latest gains are +30 and +10 (mean +20 ≥ +15); at 0 both are 0
     assert lines == ["- dev half, flow_matching (ppo): mean gain +20.0 points over 1 task(s) (seed 0)",
                      "- dev half, flow_matching (ppo), every seed: mean gain +10.0 points over 2 run(s); 0 end more "
-                     "than 5 points below BC; mean gain +15 first reached at 8000 env steps",
+                     "than 5 points below BC; the seeds of 1 of 1 task(s) within 20 points; mean gain +15 first "
+                     "reached at 8000 env steps",
                      "- noise: reach-v3 flow_matching (ppo) gains over fine-tuning seeds: +20, +0 (range 20 points)"]
     assert rl_finetune.steps_to_mean_gain(merged, mark=25) is None     # +30 and −10 at 9600: never +25 together
+
+
+def test_rl_summary_counts_agreeing_seeds_and_compares_algorithms_in_env_steps(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    def row(task, algo, seed, curve, final):     # curve: (env steps, ODE success) of each evaluation
+        return {"task": task, "decoder": "mean_flow", "algo": algo, "sigma": None, "recipe": "defaults", "seed": seed,
+                "bc_at_ft_k": 0.2, "ft_ode": final, "env_steps": curve[-1][0],
+                "curve": [[i, None, ok, x] for i, (x, ok) in enumerate(curve)]}
+
+    rows = [row("lever-pull-v3", "dsrl", 0, [(0, 0.2), (16000, 0.5), (100000, 0.6)], 0.6),
+            row("lever-pull-v3", "dsrl", 1, [(0, 0.2), (16000, 0.3), (100000, 0.3)], 0.3),   # 30 points apart
+            row("soccer-v3", "dsrl", 0, [(0, 0.2), (16000, 0.4), (100000, 0.5)], 0.5),
+            row("soccer-v3", "dsrl", 1, [(0, 0.2), (16000, 0.4), (100000, 0.45)], 0.45),
+            row("lever-pull-v3", "ppo", 0, [(0, 0.2), (320000, 0.3), (600000, 0.3)], 0.3),
+            row("soccer-v3", "ppo", 0, [(0, 0.2), (320000, 0.3), (600000, 0.35)], 0.35)]
+    lines = rl_finetune.summary(rows)
+    dsrl = next(ln for ln in lines if "(dsrl), every seed" in ln)
+    assert "the seeds of 1 of 2 task(s) within 20 points" in dsrl
+    assert "first reached at 16000 env steps" in dsrl          # mean of +30, +10, +20, +20 = +20 at 16k
+    assert "- report half, mean_flow: env steps to a mean gain of +15: dsrl 16000; ppo never within 600000 " \
+           "(38× or more)" in lines
+    ppo_first = [dict(r, curve=[[0, None, 0.2, 0], [1, None, 0.6, 32000]]) if r["algo"] == "ppo" else r for r in rows]
+    assert "- report half, mean_flow: env steps to a mean gain of +15: dsrl 16000; ppo 32000 (2.0×)" \
+           in rl_finetune.summary(ppo_first)
 
 
 def test_sde_exploration_splits_the_variance_of_executed_actions(monkeypatch, tmp_path, capsys):
