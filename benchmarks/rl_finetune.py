@@ -365,6 +365,36 @@ def steps_to_mean_gain(rows: list[dict], mark: float = GAIN_MARK) -> int | None:
     return None
 
 
+def sample_efficiency(rows: list[dict]) -> list[str]:
+    """Per (half, decoder): each algorithm's env steps to a mean gain of +15 with its defaults (PPO: the
+    protocol's σ scale), over the tasks every such algorithm ran, fastest first with the others' ratio to it."""
+    by: dict = {}
+    for r in rows:
+        if r.get("recipe", "defaults") == "defaults":
+            by.setdefault((half(r["task"]), r["decoder"]), {}).setdefault(_how(r), []).append(r)
+    lines = []
+    for (h, dec), algos in sorted(by.items()):
+        common = set.intersection(*({r["task"] for r in rs} for rs in algos.values()))
+        if len(algos) < 2 or not common:
+            continue
+        marks = []
+        for how, rs in algos.items():
+            rs = [r for r in rs if r["task"] in common]
+            if not all(curve_steps(r) for r in rs):
+                break
+            marks.append((how, steps_to_mean_gain(rs), max(r["env_steps"] for r in rs)))
+        hit = [(how, x) for how, x, _ in marks if x is not None]
+        if len(marks) < len(algos) or not hit:
+            continue
+        best_how, best = min(hit, key=lambda m: m[1])
+        others = [f"{how} " + (f"{x} ({x / best:.1f}×)" if x is not None else
+                               f"never within {most} ({most / best:.0f}× or more)")
+                  for how, x, most in marks if how != best_how]
+        lines.append(f"- {h} half, {dec}, defaults over the {len(common)} task(s) both ran: env steps to a mean gain "
+                     f"of +{GAIN_MARK:g}: {best_how} {best}; " + "; ".join(others))
+    return lines
+
+
 def summary(rows: list[dict]) -> list[str]:
     """Mean gain per (half, decoder, algo, recipe) over seed-0 rows and over every seed, the runs that end
     more than 5 points below BC, the env steps to a mean gain of +15, and the seed-to-seed spread where a
@@ -379,13 +409,11 @@ def summary(rows: list[dict]) -> list[str]:
     for (h, dec, how), gains in sorted(groups.items()):
         lines.append(f"- {h} half, {dec} ({how}): mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(gains)} task(s) (seed 0)")
-    reached: dict = {}                      # (half, decoder) -> [(recipe, env steps to the mark or None, most env steps)]
     for (h, dec, how), rs in sorted(every.items()):
         gains = [_gain(r) for r in rs]
         to_mark = steps_to_mean_gain(rs)
-        known = all(curve_steps(r) for r in rs)
         when = f"first reached at {to_mark} env steps" if to_mark is not None else \
-            "never reached in the runs' evaluations" if known else \
+            "never reached in the runs' evaluations" if all(curve_steps(r) for r in rs) else \
             "not known (evaluations recorded without env steps)"
         per_task: dict = {}
         for r in rs:
@@ -396,17 +424,7 @@ def summary(rows: list[dict]) -> list[str]:
         lines.append(f"- {h} half, {dec} ({how}), every seed: mean gain {sum(gains) / len(gains):+.1f} points over "
                      f"{len(rs)} run(s); {sum(g < -5 for g in gains)} end more than 5 points below BC{close}; mean gain "
                      f"+{GAIN_MARK:g} {when}")
-        if known:
-            reached.setdefault((h, dec), []).append((how, to_mark, max(r["env_steps"] for r in rs)))
-    for (h, dec), marks in sorted(reached.items()):
-        hit = [(how, x) for how, x, _ in marks if x is not None]
-        if len(marks) < 2 or not hit:
-            continue
-        best_how, best = min(hit, key=lambda m: m[1])
-        others = [f"{how} " + (f"{x} ({x / best:.1f}×)" if x is not None else f"never within {most} ({most / best:.0f}× or more)")
-                  for how, x, most in marks if how != best_how]
-        lines.append(f"- {h} half, {dec}: env steps to a mean gain of +{GAIN_MARK:g}: {best_how} {best}; "
-                     + "; ".join(others))
+    lines += sample_efficiency(rows)
     spread = [(k, g) for k, g in sorted(seeds.items()) if len(g) > 1]
     for (task, dec, how), gains in spread:
         lines.append(f"- noise: {task} {dec} ({how}) gains over fine-tuning seeds: "
