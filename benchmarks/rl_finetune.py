@@ -397,8 +397,9 @@ def sample_efficiency(rows: list[dict]) -> list[str]:
 
 def summary(rows: list[dict]) -> list[str]:
     """Mean gain per (half, decoder, algo, recipe) over seed-0 rows and over every seed, the runs that end
-    more than 5 points below BC, the env steps to a mean gain of +15, and the seed-to-seed spread where a
-    (task, decoder, recipe) ran with several fine-tuning seeds."""
+    more than 5 points below BC, the tasks whose seeds agree within `SEED_SPREAD`, the env steps to a mean
+    gain of +15 (and `sample_efficiency`'s comparison), and the seed-to-seed spread where a (task, decoder,
+    recipe) ran with several fine-tuning seeds."""
     lines, groups, seeds, every = [], {}, {}, {}
     for r in rows:
         how = _how(r)
@@ -415,10 +416,7 @@ def summary(rows: list[dict]) -> list[str]:
         when = f"first reached at {to_mark} env steps" if to_mark is not None else \
             "never reached in the runs' evaluations" if all(curve_steps(r) for r in rs) else \
             "not known (evaluations recorded without env steps)"
-        per_task: dict = {}
-        for r in rs:
-            per_task.setdefault(r["task"], []).append(_gain(r))
-        paired = [g for g in per_task.values() if len(g) > 1]
+        paired = [g for (t, d, w), g in seeds.items() if (half(t), d, w) == (h, dec, how) and len(g) > 1]
         close = (f"; the seeds of {sum(max(g) - min(g) <= SEED_SPREAD for g in paired)} of {len(paired)} task(s) "
                  f"within {SEED_SPREAD:g} points" if paired else "")
         lines.append(f"- {h} half, {dec} ({how}), every seed: mean gain {sum(gains) / len(gains):+.1f} points over "
