@@ -241,6 +241,7 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
 
 def main(argv=None) -> None:
     from action_decoder.config import RTC_DELAY_DISTS, DecoderConfig
+    from action_decoder.train import TrainConfig
 
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
     p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency", "cost"], default="all",
@@ -270,6 +271,10 @@ def main(argv=None) -> None:
     p.add_argument("--latency-reps", type=int, default=30)
     p.add_argument("--rtc-delay-dist", default=DecoderConfig.rtc_delay_dist, choices=list(RTC_DELAY_DISTS),
                    help="metaworld part: the delay distribution of the RTC-trained weights (train --rtc-delay-dist)")
+    p.add_argument("--train-steps", type=int, default=TrainConfig.steps,
+                   help="metaworld part: optimizer steps of every policy trained (train --steps)")
+    p.add_argument("--train-seeds", nargs="+", type=int, default=[TrainConfig.seed],
+                   help="metaworld part: training seeds, one policy pair each (train --seed)")
     p.add_argument("--rtc-balance-rows", action="store_true",
                    help="the RTC-trained weights weight loss row j by 1/P(d <= j) (train --rtc-balance-rows)")
     p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal]]/final")
@@ -320,6 +325,7 @@ def main(argv=None) -> None:
         run_multimodal(args, command)
         page(rows)
     if args.part in ("all", "metaworld"):
+        from benchmarks.rtc_modes import row_key as key
         from benchmarks.rtc_modes import run_metaworld
 
         args.delays = args.delays or [0, 1, 2, 4]
@@ -328,7 +334,6 @@ def main(argv=None) -> None:
         for task in args.tasks:
             for decoder, steps in settings:
                 new = run_metaworld(task, decoder, steps, args, command)
-                key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"])  # noqa: E731
                 old = json.loads(modes.read_text()) if modes.is_file() else []
                 modes.parent.mkdir(parents=True, exist_ok=True)
                 modes.write_text(json.dumps([r for r in old if key(r) not in {key(n) for n in new}] + new, indent=1))

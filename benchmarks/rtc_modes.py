@@ -400,17 +400,31 @@ def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False) -> s
         if max_delay else ""
 
 
+def run_suffix(train_steps: int, train_seed: int) -> str:
+    """The run directory's suffix of a training budget and seed other than `action-decoder train`'s defaults."""
+    from action_decoder.train import TrainConfig
+
+    return (f"-{train_steps}steps" if train_steps != TrainConfig.steps else "") + \
+        (f"-seed{train_seed}" if train_seed != TrainConfig.seed else "")
+
+
 def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform",
-                    balance_rows: bool = False) -> Path:
-    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows), once,
-    under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]]."""
+                    balance_rows: bool = False, train_steps: int | None = None, train_seed: int | None = None) -> Path:
+    """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows, --steps,
+    --seed), once, under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]][-<steps>steps][-seed<s>]."""
     import subprocess
     import sys
 
-    out = runs / f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows)}"
+    from action_decoder.train import TrainConfig
+
+    train_steps = TrainConfig.steps if train_steps is None else train_steps
+    train_seed = TrainConfig.seed if train_seed is None else train_seed
+    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows)}"
+                  f"{run_suffix(train_steps, train_seed)}")
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
-               "--output-dir", str(out), "--eval-episodes", "0", "--no-progress"]
+               "--output-dir", str(out), "--eval-episodes", "0", "--no-progress",
+               "--steps", str(train_steps), "--seed", str(train_seed)]
         cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
         cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
         out.mkdir(parents=True, exist_ok=True)
@@ -421,41 +435,79 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
 
 
 def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> list[dict]:
-    """Each (delay, arm) of one task and setting: success, boundary jerk, latency; the same noise per
-    (episode, plan) in every arm."""
+    """Each (training seed, arm, delay) of one task and setting: success, boundary jerk, latency; the same
+    noise per (episode, plan) in every arm."""
     from action_decoder import ActionDecoderPolicy
     from action_decoder.envs import evaluate
     from action_decoder.evaluate import make_policy_fn
+    from action_decoder.train import TrainConfig
 
-    need = {"rtc" if a == "trained" else "plain" for a in args.arms}            # train only the weights needed
-    ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0, args.rtc_delay_dist,
-                                args.rtc_balance_rows) for k in sorted(need)}
-    pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
+    train_steps = getattr(args, "train_steps", None) or TrainConfig.steps
     rows = []
-    for arm in args.arms:
-        policy = arm_policy(pols, arm)
-        plain_ms, arm_ms = latency_ms(policy, steps, arm, args.latency_reps)
-        for d in args.delays:
-            fn = make_policy_fn(policy, 1, None, steps, torch.Generator().manual_seed(args.seed),
-                                rtc_mode=None if arm == "naive" else arm)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                res = evaluate(fn, task, episodes=args.episodes, seed=args.seed, n_action_steps=S,
-                               num_envs=args.num_envs, delay=d, rtc=arm != "naive")
-            rows.append({"task": res["task"], "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
-                         "episodes": args.episodes, "seed": args.seed, "successes": int(sum(res["successes"])),
-                         "success_rate": res["success_rate"], "boundary_jerk": res["boundary_jerk"],
-                         "boundaries": res["boundaries"], "episode_boundary_jerk": res["episode_boundary_jerk"],
-                         "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
-                         "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
-                         "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
-                         "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
-                         "date": time.strftime("%Y-%m-%d"),
-                         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
-                                    f"{torch.get_num_threads()} torch thread"})
-            print(f"[{res['task']}] {LABEL[(decoder, steps)]} d={d} {arm}: success {res['success_rate']:.2f}, "
-                  f"boundary jerk {res['boundary_jerk']:.4g}, chunk {rows[-1]['latency_ms']:.1f} ms", flush=True)
+    for train_seed in getattr(args, "train_seeds", None) or [TrainConfig.seed]:
+        need = {"rtc" if a == "trained" else "plain" for a in args.arms}        # train only the weights needed
+        ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0,
+                                    args.rtc_delay_dist, args.rtc_balance_rows, train_steps, train_seed)
+                 for k in sorted(need)}
+        pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
+        for arm in args.arms:
+            policy = arm_policy(pols, arm)
+            plain_ms, arm_ms = latency_ms(policy, steps, arm, args.latency_reps)
+            for d in args.delays:
+                fn = make_policy_fn(policy, 1, None, steps, torch.Generator().manual_seed(args.seed),
+                                    rtc_mode=None if arm == "naive" else arm)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    res = evaluate(fn, task, episodes=args.episodes, seed=args.seed, n_action_steps=S,
+                                   num_envs=args.num_envs, delay=d, rtc=arm != "naive")
+                rows.append({"task": res["task"], "decoder": decoder, "steps": steps, "delay": d, "arm": arm,
+                             "train_steps": train_steps, "train_seed": train_seed,
+                             "episodes": args.episodes, "seed": args.seed, "successes": int(sum(res["successes"])),
+                             "success_rate": res["success_rate"], "boundary_jerk": res["boundary_jerk"],
+                             "boundaries": res["boundaries"], "episode_boundary_jerk": res["episode_boundary_jerk"],
+                             "latency_plain_ms": plain_ms, "latency_ms": arm_ms if arm != "naive" else plain_ms,
+                             "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
+                             "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
+                             "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
+                             "date": time.strftime("%Y-%m-%d"),
+                             "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
+                                        f"{torch.get_num_threads()} torch thread"})
+                print(f"[{res['task']}] {LABEL[(decoder, steps)]} train {train_steps} steps seed {train_seed} "
+                      f"d={d} {arm}: success {res['success_rate']:.2f}, boundary jerk {res['boundary_jerk']:.4g}, "
+                      f"chunk {rows[-1]['latency_ms']:.1f} ms", flush=True)
     return rows
+
+
+def row_key(r: dict) -> tuple:
+    """What one Meta-World row measures; rows without a training budget or seed used the CLI's defaults."""
+    from action_decoder.train import TrainConfig
+
+    return (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"],
+            r.get("train_steps", TrainConfig.steps), r.get("train_seed", TrainConfig.seed))
+
+
+def _budget(r: dict) -> int:
+    from action_decoder.train import TrainConfig
+
+    return r.get("train_steps", TrainConfig.steps)
+
+
+def _seed(r: dict) -> int:
+    from action_decoder.train import TrainConfig
+
+    return r.get("train_seed", TrainConfig.seed)
+
+
+def seed_spread(got: list[dict]) -> str:
+    """Standard deviation over training seeds of the success pooled over tasks (%), when at least two seeds
+    cover the same tasks; "–" otherwise."""
+    by_seed: dict = {}
+    for r in got:
+        by_seed.setdefault(_seed(r), []).append(r)
+    if len(by_seed) < 2 or len({frozenset(x["task"] for x in v) for v in by_seed.values()}) != 1:
+        return "–"
+    rates = [100 * sum(x["successes"] for x in v) / sum(x["episodes"] for x in v) for v in by_seed.values()]
+    return f"{statistics.stdev(rates):.1f}"
 
 
 def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
@@ -472,45 +524,59 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                     f"{', '.join(map(str, sorted({r['seed'] for r in rows})))}, re-planning every {S} of {H} actions. "
                     f"Success noise: ±{100 * (0.25 / min(eps)) ** 0.5:.1f} points (binomial at 50 % over "
                     f"{min(eps)} episodes); two cells differ beyond noise above "
-                    f"{2 * 2 ** 0.5 * 100 * (0.25 / min(eps)) ** 0.5:.0f} points. Boundary jerk as in the table "
-                    f"below, ± its standard error over episodes. naive and guided use weights trained without RTC, "
-                    f"trained weights trained with rtc_max_delay = {MAX_DELAY} ({_dists(rows)}). Chunk ms: batch 1, the median CPU time of interleaved "
+                    f"{2 * 2 ** 0.5 * 100 * (0.25 / min(eps)) ** 0.5:.0f} points. One table per training budget "
+                    f"(`train --steps`); success is pooled over tasks and training seeds (`train --seed`), and "
+                    f"seed SD is the standard deviation over training seeds of the success pooled over tasks. "
+                    f"Boundary jerk as in the table below, ± its standard error over episodes. naive and guided use "
+                    f"weights trained without RTC, trained weights trained with rtc_max_delay = {MAX_DELAY} "
+                    f"({_dists(rows)}). Chunk ms: batch 1, the median CPU time of interleaved "
                     f"calls (one torch thread), the arm at d = {MAX_DELAY} against a plain chunk of the same weights. "
-                    f"–: not measured.", "",
-                    "| setting | d | arm | tasks | success | boundary jerk | chunk ms (plain → arm) |",
-                    "|---|---|---|---|---|---|---|"]
-    for setting in SETTINGS:
-        for d in DELAYS:
-            for arm in ARMS:
-                got = [r for r in rows if (r["decoder"], r["steps"]) == setting and r["delay"] == d and r["arm"] == arm]
-                if not got:
-                    lines.append(f"| {LABEL[setting]} | {d} | {arm} | – | – | – | – |")
-                    continue
-                succ = 100 * sum(r["successes"] for r in got) / sum(r["episodes"] for r in got)
-                nb = sum(r["boundaries"] for r in got)
-                jerk = sum(r["boundary_jerk"] * r["boundaries"] for r in got) / max(1, nb)
-                per = [j for r in got for j in r["episode_boundary_jerk"] if j is not None]
-                se = statistics.stdev(per) / len(per) ** 0.5 if len(per) > 1 else float("nan")
-                p_ms = statistics.mean(r["latency_plain_ms"] for r in got)
-                a_ms = statistics.mean(r["latency_ms"] for r in got)
-                lines.append(f"| {LABEL[setting]} | {d} | {arm} | {len(got)} | {succ:.1f} | {jerk:.4f} ± {se:.4f} | "
-                             f"{p_ms:.1f} → {a_ms:.1f} ({a_ms / p_ms:.2f}×) |")
-    return lines + ["", *per_task_section(rows), ""]
+                    f"Settings, delays and arms not listed are not measured.", ""]
+    for budget in sorted({_budget(r) for r in rows}):
+        at = [r for r in rows if _budget(r) == budget]
+        lines += [f"### Trained {budget} steps", "",
+                  "| setting | d | arm | tasks | training seeds | success | seed SD | boundary jerk | chunk ms (plain → arm) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for setting in SETTINGS:
+            for d in DELAYS:
+                for arm in ARMS:
+                    got = [r for r in at if (r["decoder"], r["steps"]) == setting and r["delay"] == d
+                           and r["arm"] == arm]
+                    if not got:
+                        continue
+                    succ = 100 * sum(r["successes"] for r in got) / sum(r["episodes"] for r in got)
+                    nb = sum(r["boundaries"] for r in got)
+                    jerk = sum(r["boundary_jerk"] * r["boundaries"] for r in got) / max(1, nb)
+                    per = [j for r in got for j in r["episode_boundary_jerk"] if j is not None]
+                    se = statistics.stdev(per) / len(per) ** 0.5 if len(per) > 1 else float("nan")
+                    p_ms = statistics.mean(r["latency_plain_ms"] for r in got)
+                    a_ms = statistics.mean(r["latency_ms"] for r in got)
+                    lines.append(f"| {LABEL[setting]} | {d} | {arm} | {len({r['task'] for r in got})} | "
+                                 f"{', '.join(map(str, sorted({_seed(r) for r in got})))} | {succ:.1f} | "
+                                 f"{seed_spread(got)} | {jerk:.4f} ± {se:.4f} | "
+                                 f"{p_ms:.1f} → {a_ms:.1f} ({a_ms / p_ms:.2f}×) |")
+        lines += ["", *per_task_section(at), ""]
+    return lines
 
 
 def per_task_section(rows: list[dict]) -> list[str]:
-    """Success per task (%) of each setting and arm, at each delay measured: the pooled rows above can mix task sets."""
+    """Success per task (%) of each setting and arm at each delay measured, the mean over training seeds: the
+    pooled rows above can mix task sets."""
     tasks = sorted({r["task"] for r in rows})
     delays = sorted({r["delay"] for r in rows})
-    by = {(r["task"], r["decoder"], r["steps"], r["arm"], r["delay"]): r for r in rows}
-    lines = ["### Success per task (%), at d = " + " / ".join(map(str, delays)), "",
+    by: dict = {}
+    for r in rows:
+        by.setdefault((r["task"], r["decoder"], r["steps"], r["arm"], r["delay"]), []).append(r["success_rate"])
+    seeds = len({_seed(r) for r in rows})
+    lines = [f"Success per task (%), at d = {' / '.join(map(str, delays))}"
+             f"{f', the mean over {seeds} training seeds' if seeds > 1 else ''}:", "",
              "| setting | arm | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
     for setting in SETTINGS:
         for arm in ARMS:
             if not any((t, *setting, arm, d) in by for t in tasks for d in delays):
                 continue
             cell = lambda t: " / ".join("–" if (t, *setting, arm, d) not in by else       # noqa: E731
-                                        f"{100 * by[(t, *setting, arm, d)]['success_rate']:.0f}" for d in delays)
+                                        f"{100 * statistics.mean(by[(t, *setting, arm, d)]):.0f}" for d in delays)
             lines.append(f"| {LABEL[setting]} | {arm} | " + " | ".join(cell(t) for t in tasks) + " |")
     return lines
 

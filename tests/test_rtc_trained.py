@@ -551,3 +551,47 @@ def test_benchmark_names_the_rtc_weights_by_their_delay_distribution():
     assert rtc_suffix(0, "exp") == "" and rtc_suffix(4, "uniform") == "-rtc4" and rtc_suffix(4, "exp") == "-rtc4exp"
     rows = [{"arm": "trained", "rtc_delay_dist": "exp"}, {"arm": "trained"}, {"arm": "naive"}]
     assert _dists(rows) == "delays drawn exp and uniform on 0..4" and _dists(rows[:1]) == "delays drawn exp on 0..4"
+
+
+def _mw_row(task, arm, delay, successes, train_steps=None, train_seed=None, episodes=50):
+    r = {"task": task, "decoder": "mean_flow", "steps": 1, "delay": delay, "arm": arm, "episodes": episodes,
+         "seed": 0, "successes": successes, "success_rate": successes / episodes, "boundary_jerk": 0.1,
+         "boundaries": 10, "episode_boundary_jerk": [0.1, 0.1], "latency_plain_ms": 2.0, "latency_ms": 2.0,
+         "date": "2026-11-27", "machine": "x86_64", "command": "c",
+         "rtc_delay_dist": "exp" if arm == "trained" else None}
+    r.update({} if train_steps is None else {"train_steps": train_steps})
+    r.update({} if train_seed is None else {"train_seed": train_seed})
+    return r
+
+
+def test_meta_world_page_gives_one_table_per_training_budget_and_the_spread_over_training_seeds():
+    from benchmarks.rtc_modes import metaworld_section, row_key, run_suffix, seed_spread
+
+    assert run_suffix(1500, 0) == "" and run_suffix(5000, 2) == "-5000steps-seed2"
+    old = _mw_row("push-v3", "naive", 0, 40)                      # a row from before budgets and seeds were recorded
+    assert row_key(old) == row_key(_mw_row("push-v3", "naive", 0, 10, 1500, 0))
+    assert row_key(old) != row_key(_mw_row("push-v3", "naive", 0, 10, 5000, 0))
+    # two training seeds on two tasks: per seed 60 % and 40 % pooled over tasks -> SD 14.1
+    seeds = [_mw_row("push-v3", "trained", 2, 40, 5000, 0), _mw_row("hammer-v3", "trained", 2, 20, 5000, 0),
+             _mw_row("push-v3", "trained", 2, 30, 5000, 1), _mw_row("hammer-v3", "trained", 2, 10, 5000, 1)]
+    assert seed_spread(seeds) == "14.1" and seed_spread(seeds[:3]) == "–" and seed_spread(seeds[:2]) == "–"
+    page = "\n".join(metaworld_section([old, *seeds], ["metaworld/push", "metaworld/hammer"]))
+    assert "### Trained 1500 steps" in page and "### Trained 5000 steps" in page
+    assert "| MF K=1 | 2 | trained | 2 | 0, 1 | 50.0 | 14.1 |" in page
+    assert "| MF K=1 | 0 | naive | 1 | 0 | 80.0 | – |" in page
+    assert "the mean over 2 training seeds" in page and "| MF K=1 | trained | 30 | 70 |" in page
+
+
+def test_meta_world_training_runs_the_cli_with_the_budget_and_seed_under_their_own_directory(tmp_path, monkeypatch):
+    import subprocess
+
+    from benchmarks.rtc_modes import train_metaworld
+
+    calls = []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 2)
+    assert out == tmp_path / "push-mean_flow-rtc4exp-5000steps-seed2" / "final"
+    cmd = calls[0]
+    assert cmd[cmd.index("--steps") + 1] == "5000" and cmd[cmd.index("--seed") + 1] == "2"
+    assert cmd[cmd.index("--rtc-max-delay") + 1] == "4" and cmd[cmd.index("--rtc-delay-dist") + 1] == "exp"
+    assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0) == tmp_path / "push-mean_flow" / "final"
