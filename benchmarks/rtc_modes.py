@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from action_decoder.train import TrainConfig
+
 S, H = 4, 16                                   # actions executed per chunk, chunk length
 DELAYS = (0, 1, 2, 4)
 MAX_DELAY = 4                                  # rtc_max_delay of the RTC-trained weights
@@ -402,8 +404,6 @@ def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False) -> s
 
 def run_suffix(train_steps: int, train_seed: int) -> str:
     """The run directory's suffix of a training budget and seed other than `action-decoder train`'s defaults."""
-    from action_decoder.train import TrainConfig
-
     return (f"-{train_steps}steps" if train_steps != TrainConfig.steps else "") + \
         (f"-seed{train_seed}" if train_seed != TrainConfig.seed else "")
 
@@ -414,8 +414,6 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
     --seed), once, under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]][-<steps>steps][-seed<s>]."""
     import subprocess
     import sys
-
-    from action_decoder.train import TrainConfig
 
     train_steps = TrainConfig.steps if train_steps is None else train_steps
     train_seed = TrainConfig.seed if train_seed is None else train_seed
@@ -440,7 +438,6 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     from action_decoder import ActionDecoderPolicy
     from action_decoder.envs import evaluate
     from action_decoder.evaluate import make_policy_fn
-    from action_decoder.train import TrainConfig
 
     train_steps = getattr(args, "train_steps", None) or TrainConfig.steps
     rows = []
@@ -478,24 +475,17 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     return rows
 
 
-def row_key(r: dict) -> tuple:
-    """What one Meta-World row measures; rows without a training budget or seed used the CLI's defaults."""
-    from action_decoder.train import TrainConfig
-
-    return (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"],
-            r.get("train_steps", TrainConfig.steps), r.get("train_seed", TrainConfig.seed))
-
-
 def _budget(r: dict) -> int:
-    from action_decoder.train import TrainConfig
-
     return r.get("train_steps", TrainConfig.steps)
 
 
 def _seed(r: dict) -> int:
-    from action_decoder.train import TrainConfig
-
     return r.get("train_seed", TrainConfig.seed)
+
+
+def row_key(r: dict) -> tuple:
+    """What one Meta-World row measures; rows without a training budget or seed used the CLI's defaults."""
+    return (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"], _budget(r), _seed(r))
 
 
 def seed_spread(got: list[dict]) -> str:
