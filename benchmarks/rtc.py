@@ -4,9 +4,12 @@
     python -m benchmarks rtc --part multimodal   # the synthetic two-route chunks and the obstacle routes only
     python -m benchmarks rtc --part metaworld --tasks metaworld/push --episodes 10   # a taste
     python -m benchmarks rtc --part horizons     # guidance horizons (overlap vs execution) on Meta-World
+    python -m benchmarks rtc --part prefix --settings mean_flow:1 mean_flow:2   # trained RTC on its training chunks
 
 --part multimodal and metaworld compare naive / guided / trained (`benchmarks/rtc_modes.py`), rows in
---multimodal-json and --modes-json. --part horizons (below) compares the guidance horizons.
+--multimodal-json and --modes-json. --part prefix feeds the RTC-trained Meta-World weights their own
+demonstrations' prefixes (`benchmarks/rtc_prefix_fit.py`), rows in --prefix-json. --part horizons (below)
+compares the guidance horizons.
 
 For each task it trains (once, with `action-decoder train` defaults, no evaluation) a flow-matching
 and a MeanFlow policy under --runs/<task>-<decoder>/, then evaluates closed loop, re-planning every
@@ -190,6 +193,14 @@ INTRO = ("Inference takes d control steps; the robot executes the old chunk's ne
          "Route kept: the share of re-plans whose executed rows stay on the committed route.")
 
 
+def merge_rows(path: Path, new: list[dict], key) -> None:
+    """Write `new` into the JSON rows at `path`, replacing the rows that measure the same thing (`key`); read
+    at write time, so that runs of other tasks may overlap."""
+    old = json.loads(path.read_text()) if path.is_file() else []
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps([r for r in old if key(r) not in {key(n) for n in new}] + new, indent=1))
+
+
 def _load(path) -> list:
     return json.loads(Path(path).read_text()) if path and Path(path).is_file() else []
 
@@ -208,10 +219,12 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
     noise_text = "; ".join(f"±{100 * (0.25 / c) ** 0.5:.1f} points over {c} episodes (beyond noise: more than "
                            f"{2 * 2 ** 0.5 * 100 * (0.25 / c) ** 0.5:.0f} points)" for c in counts) or "not measured"
     from benchmarks.rtc_modes import cost_section, metaworld_section, multimodal_section
+    from benchmarks.rtc_prefix_fit import prefix_section
 
     top = ["# Real-time chunking: naive switching, guided and trained RTC", "", INTRO, "",
            *multimodal_section(_load(getattr(args, "multimodal_json", None))),
            *metaworld_section(_load(getattr(args, "modes_json", None)), getattr(args, "tasks", None) or TASKS),
+           *prefix_section(_load(getattr(args, "prefix_json", None))),
            *cost_section(_load(getattr(args, "cost_json", None)))]
     head = [
         "## Guidance horizons: overlap vs execution (weights trained without RTC)", "",
@@ -244,7 +257,8 @@ def main(argv=None) -> None:
     from action_decoder.train import TrainConfig
 
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
-    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency", "cost"], default="all",
+    p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency", "cost", "prefix"],
+                   default="all",
                    help="all: multimodal, then metaworld (naive / guided / trained); horizons: the guidance horizons; "
                         "latency: re-time the rows of --multimodal-json and --modes-json; cost: plain against "
                         "trained-RTC chunks at batch 1 on --device, no checkpoints")
@@ -275,12 +289,17 @@ def main(argv=None) -> None:
                    help="metaworld part: optimizer steps of every policy trained (train --steps)")
     p.add_argument("--train-seeds", nargs="+", type=int, default=[TrainConfig.seed],
                    help="metaworld part: training seeds, one policy pair each (train --seed)")
+    p.add_argument("--rtc-meanflow-target", default=None, choices=["identity", "split"],
+                   help="the MeanFlow target of the RTC-trained weights (train "
+                        "--meanflow-target; default: train's, split)")
     p.add_argument("--rtc-balance-rows", action="store_true",
                    help="the RTC-trained weights weight loss row j by 1/P(d <= j) (train --rtc-balance-rows)")
-    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal]]/final")
+    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal][split]]/final")
     p.add_argument("--json", default="docs/benchmarks/rtc.json", help="horizons part: rows")
     p.add_argument("--multimodal-json", default="docs/benchmarks/rtc_multimodal.json")
     p.add_argument("--modes-json", default="docs/benchmarks/rtc_modes.json")
+    p.add_argument("--prefix-json", default="docs/benchmarks/rtc_prefix.json",
+                   help="prefix part: rows (trained RTC fed its own demonstrations' prefixes)")
     p.add_argument("--table", default="docs/benchmarks/rtc.md")
     p.add_argument("--page-only", action="store_true", help="rebuild --table from the JSON rows, run nothing")
     p.add_argument("--latency-only", action="store_true",
@@ -330,13 +349,18 @@ def main(argv=None) -> None:
 
         args.delays = args.delays or [0, 1, 2, 4]
         args.episodes = args.episodes or 50
-        modes = Path(args.modes_json)
         for task in args.tasks:
             for decoder, steps in settings:
-                new = run_metaworld(task, decoder, steps, args, command)
-                old = json.loads(modes.read_text()) if modes.is_file() else []
-                modes.parent.mkdir(parents=True, exist_ok=True)
-                modes.write_text(json.dumps([r for r in old if key(r) not in {key(n) for n in new}] + new, indent=1))
+                merge_rows(Path(args.modes_json), run_metaworld(task, decoder, steps, args, command), key)
+                page(rows)
+    if args.part == "prefix":
+        from benchmarks.rtc_prefix_fit import row_key as key
+        from benchmarks.rtc_prefix_fit import run_prefix_fit
+
+        args.delays = args.delays or [0, 1, 2, 4]
+        for task in args.tasks:
+            for decoder, steps in settings:
+                merge_rows(Path(args.prefix_json), run_prefix_fit(task, decoder, steps, args, command), key)
                 page(rows)
     if args.part == "horizons":
         args.delays = args.delays or [0, 2, 4]

@@ -154,10 +154,21 @@ def switch_jerk(seq: np.ndarray, switch: int) -> float:
     return float(np.mean([np.square(seq[c + 1] - 2 * seq[c] + seq[c - 1]).sum() for c in centres]))
 
 
+def rtc_target(decoder: str, max_delay: int, meanflow_target: str | None = None) -> str:
+    """The MeanFlow target of weights trained with `max_delay`: `meanflow_target`, or the library's default for
+    them (None); "identity" for flow matching and for weights trained without RTC."""
+    from action_decoder import DecoderConfig
+
+    if decoder != "mean_flow" or not max_delay:
+        return "identity"
+    return meanflow_target or DecoderConfig(decoder_type=decoder, rtc_max_delay=max_delay).meanflow_target
+
+
 def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, draw, state_dim: int,
-                     action_dim: int, arms=ARMS) -> dict:
+                     action_dim: int, arms=ARMS, meanflow_target: str | None = None) -> dict:
     """{"plain": policy, "rtc": policy, "train_cpu_s": {...}} (the weights `arms` need): trained once
-    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>]]."""
+    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>][bal][split]]-seed<s>; the
+    RTC-trained MeanFlow weights with `meanflow_target` (None: the library's default, `rtc_target`)."""
     from action_decoder import ActionDecoderPolicy
     from benchmarks.multimodal import Budget, train
 
@@ -166,9 +177,12 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
     for key, max_delay in (("plain", 0), ("rtc", MAX_DELAY)):
         if key not in need:
             continue
-        path = runs / f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows)}-seed{seed}"
+        target = rtc_target(decoder, max_delay, meanflow_target)
+        path = runs / (f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows, target)}"
+                       f"-seed{seed}")
         if not (path / "model.safetensors").is_file():
-            b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay})
+            recipe = {**budget.recipe, **({"target": target} if decoder == "mean_flow" else {})}
+            b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay, "recipe": recipe})
             policy, cpu_s = train(decoder, draw, state_dim, action_dim, b, seed)
             policy.save_pretrained(path)
             (path / "train_cpu_s.json").write_text(json.dumps(cpu_s))
@@ -307,13 +321,13 @@ def run_multimodal(args, command: str) -> None:
     out = Path(args.multimodal_json)
     for task in args.multimodal:
         if task == "synthetic":
-            pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4, args.arms)
-                    for dec in decoders}
+            pols = {dec: trained_policies("synthetic", dec, budget, args.seed, runs, synthetic_batch, 4, 4, args.arms,
+                                          args.rtc_meanflow_target) for dec in decoders}
             new = run_synthetic(pols, args.mm_states, args.mm_samples, args.seed, args.arms)
         else:
             states, chunks = expert_dataset(budget.demos, args.seed)
             pols = {dec: trained_policies("obstacle", dec, budget, args.seed, runs, dataset_batch(states, chunks),
-                                          OBS_DIM, ACTION_DIM, args.arms) for dec in decoders}
+                                          OBS_DIM, ACTION_DIM, args.arms, args.rtc_meanflow_target) for dec in decoders}
             new = run_obstacle(pols, args.mm_episodes, args.seed, args.arms)
         for r in new:
             p = pols[r["decoder"]]
@@ -322,10 +336,12 @@ def run_multimodal(args, command: str) -> None:
             r.update(latency_plain_ms=plain, latency_ms=armed, seed=args.seed, train_cpu_s=p["train_cpu_s"],
                      rtc_delay_dist=budget.rtc_delay_dist if r["arm"] == "trained" else None,
                      rtc_balance_rows=budget.rtc_balance_rows if r["arm"] == "trained" else None,
+                     rtc_meanflow_target=p["rtc"].config.meanflow_target
+                     if r["arm"] == "trained" and r["decoder"] == "mean_flow" else None,
                      train_steps=budget.steps, command=command, date=time.strftime("%Y-%m-%d"),
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
-        key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"])     # noqa: E731
+        key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], arm_label(r), r["seed"])  # noqa: E731
         rows = json.loads(out.read_text()) if out.is_file() else []                              # read now: runs may overlap
         rows = [r for r in rows if key(r) not in {key(n) for n in new}] + new
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -348,8 +364,8 @@ def multimodal_section(rows: list[dict]) -> list[str]:
     if not rows:
         return ["## Multimodal chunks: does the new chunk keep the committed route?", "",
                 "Not yet measured.", ""]
-    syn = {(r["decoder"], r["steps"], r["delay"], r["arm"]): r for r in rows if r["task"] == "synthetic"}
-    obs = {(r["decoder"], r["steps"], r["delay"], r["arm"]): r for r in rows if r["task"] == "obstacle"}
+    syn = {(r["decoder"], r["steps"], r["delay"], arm_label(r)): r for r in rows if r["task"] == "synthetic"}
+    obs = {(r["decoder"], r["steps"], r["delay"], arm_label(r)): r for r in rows if r["task"] == "obstacle"}
     meta = sorted({(r["date"], r["machine"], r["command"]) for r in rows})
     n_syn = sorted({r["samples"] for r in syn.values()})
     n_obs = sorted({r["episodes"] for r in obs.values()})
@@ -369,7 +385,7 @@ def multimodal_section(rows: list[dict]) -> list[str]:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for setting in SETTINGS:
         for d in DELAYS:
-            for arm in ARMS:
+            for arm in arm_labels(rows):
                 k = (*setting, d, arm)
                 s, o = syn.get(k), obs.get(k)
                 if s is None and o is None:
@@ -387,19 +403,20 @@ def multimodal_section(rows: list[dict]) -> list[str]:
         lines += ["", "Without a prefix (d = 0, no previous chunk): the weights trained with RTC against those "
                   "trained without, synthetic task (benchmarks/multimodal.py's metrics).", "",
                   "| setting | weights | on a mode | majority share | energy distance |", "|---|---|---|---|---|"]
-        for r in sorted(mm, key=lambda r: (r["decoder"], r["steps"], r["arm"])):
+        for r in sorted(mm, key=lambda r: (r["decoder"], r["steps"], arm_label(r))):
             m = r["mode_metrics"]
-            lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {'RTC-trained' if r['arm'] == 'trained' else 'plain'} "
+            weights = "plain" if r["arm"] != "trained" else "RTC-trained" + arm_label(r)[len("trained"):]
+            lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {weights} "
                          f"| {_pct(m['on_mode'])} | {_pct(m['majority_share'])} | {m['energy']:.3f} |")
     return lines + [""]
 
 
 # ----------------------------------------------------------------------------------------- Meta-World
-def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False) -> str:
-    """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform, and
-    "bal" with balanced row weights."""
-    return f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}" \
-        if max_delay else ""
+def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False, meanflow_target: str = "identity") -> str:
+    """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform,
+    "bal" with balanced row weights and "split" with MeanFlow's interval-consistency target."""
+    return (f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}"
+            f"{'split' if meanflow_target == 'split' else ''}") if max_delay else ""
 
 
 def run_suffix(train_steps: int, train_seed: int) -> str:
@@ -409,15 +426,18 @@ def run_suffix(train_steps: int, train_seed: int) -> str:
 
 
 def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform",
-                    balance_rows: bool = False, train_steps: int | None = None, train_seed: int | None = None) -> Path:
+                    balance_rows: bool = False, train_steps: int | None = None, train_seed: int | None = None,
+                    meanflow_target: str | None = None) -> Path:
     """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows, --steps,
-    --seed), once, under runs/<task>-<decoder>[-rtc<N>[<dist>][bal]][-<steps>steps][-seed<s>]."""
+    --seed, and for RTC-trained MeanFlow --meanflow-target, None: train's default), once, under
+    runs/<task>-<decoder>[-rtc<N>[<dist>][bal][split]][-<steps>steps][-seed<s>]."""
     import subprocess
     import sys
 
     train_steps = TrainConfig.steps if train_steps is None else train_steps
     train_seed = TrainConfig.seed if train_seed is None else train_seed
-    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows)}"
+    target = rtc_target(decoder, max_delay, meanflow_target)
+    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows, target)}"
                   f"{run_suffix(train_steps, train_seed)}")
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
@@ -425,6 +445,7 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
                "--steps", str(train_steps), "--seed", str(train_seed)]
         cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
         cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
+        cmd += ["--meanflow-target", target] if decoder == "mean_flow" and max_delay else []
         out.mkdir(parents=True, exist_ok=True)
         with open(out.with_suffix(".log"), "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
@@ -444,7 +465,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
     for train_seed in getattr(args, "train_seeds", None) or [TrainConfig.seed]:
         need = {"rtc" if a == "trained" else "plain" for a in args.arms}        # train only the weights needed
         ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0,
-                                    args.rtc_delay_dist, args.rtc_balance_rows, train_steps, train_seed)
+                                    args.rtc_delay_dist, args.rtc_balance_rows, train_steps, train_seed,
+                                    getattr(args, "rtc_meanflow_target", None))
                  for k in sorted(need)}
         pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
         for arm in args.arms:
@@ -466,6 +488,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                              "checkpoint": str(ckpts["rtc" if arm == "trained" else "plain"]), "command": command,
                              "rtc_delay_dist": pols["rtc"].config.rtc_delay_dist if arm == "trained" else None,
                              "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
+                             "rtc_meanflow_target": pols["rtc"].config.meanflow_target
+                             if arm == "trained" and decoder == "mean_flow" else None,
                              "date": time.strftime("%Y-%m-%d"),
                              "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                         f"{torch.get_num_threads()} torch thread"})
@@ -483,9 +507,19 @@ def _seed(r: dict) -> int:
     return r.get("train_seed", TrainConfig.seed)
 
 
+def arm_label(r: dict) -> str:
+    """The row's arm, naming the MeanFlow target of RTC-trained weights when it is not the identity."""
+    return r["arm"] + (", split target" if r.get("rtc_meanflow_target") == "split" else "")
+
+
+def arm_labels(rows: list[dict]) -> list[str]:
+    """The arm labels of `rows` in ARMS' order (the identity target before the split one)."""
+    return sorted({arm_label(r) for r in rows}, key=lambda a: (ARMS.index(a.split(",")[0]), a))
+
+
 def row_key(r: dict) -> tuple:
     """What one Meta-World row measures; rows without a training budget or seed used the CLI's defaults."""
-    return (r["task"], r["decoder"], r["steps"], r["delay"], r["arm"], r["seed"], _budget(r), _seed(r))
+    return (r["task"], r["decoder"], r["steps"], r["delay"], arm_label(r), r["seed"], _budget(r), _seed(r))
 
 
 def seed_spread(got: list[dict]) -> str:
@@ -521,7 +555,10 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                     f"weights trained without RTC, trained weights trained with rtc_max_delay = {MAX_DELAY} "
                     f"({_dists(rows)}). Chunk ms: batch 1, the median CPU time of interleaved "
                     f"calls (one torch thread), the arm at d = {MAX_DELAY} against a plain chunk of the same weights. "
-                    f"Settings, delays and arms not listed are not measured.", ""]
+                    f"Settings, delays and arms not listed are not measured."
+                    + (" \"trained, split target\": MeanFlow weights trained with RTC and the interval-consistency "
+                       "target (`train --meanflow-target split`); \"trained\": the MeanFlow identity."
+                       if any(r.get("rtc_meanflow_target") == "split" for r in rows) else ""), ""]
     for budget in sorted({_budget(r) for r in rows}):
         at = [r for r in rows if _budget(r) == budget]
         lines += [f"### Trained {budget} steps", "",
@@ -529,9 +566,9 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                   "|---|---|---|---|---|---|---|---|---|"]
         for setting in SETTINGS:
             for d in DELAYS:
-                for arm in ARMS:
+                for arm in arm_labels(at):
                     got = [r for r in at if (r["decoder"], r["steps"]) == setting and r["delay"] == d
-                           and r["arm"] == arm]
+                           and arm_label(r) == arm]
                     if not got:
                         continue
                     succ = 100 * sum(r["successes"] for r in got) / sum(r["episodes"] for r in got)
@@ -556,13 +593,13 @@ def per_task_section(rows: list[dict]) -> list[str]:
     delays = sorted({r["delay"] for r in rows})
     by: dict = {}
     for r in rows:
-        by.setdefault((r["task"], r["decoder"], r["steps"], r["arm"], r["delay"]), []).append(r["success_rate"])
+        by.setdefault((r["task"], r["decoder"], r["steps"], arm_label(r), r["delay"]), []).append(r["success_rate"])
     seeds = len({_seed(r) for r in rows})
     lines = [f"Success per task (%), at d = {' / '.join(map(str, delays))}"
              f"{f', the mean over {seeds} training seeds' if seeds > 1 else ''}:", "",
              "| setting | arm | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
     for setting in SETTINGS:
-        for arm in ARMS:
+        for arm in arm_labels(rows):
             if not any((t, *setting, arm, d) in by for t in tasks for d in delays):
                 continue
             cell = lambda t: " / ".join("–" if (t, *setting, arm, d) not in by else       # noqa: E731

@@ -590,8 +590,128 @@ def test_meta_world_training_runs_the_cli_with_the_budget_and_seed_under_their_o
     calls = []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
     out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 2)
-    assert out == tmp_path / "push-mean_flow-rtc4exp-5000steps-seed2" / "final"
+    assert out == tmp_path / "push-mean_flow-rtc4expsplit-5000steps-seed2" / "final"     # the default target
     cmd = calls[0]
     assert cmd[cmd.index("--steps") + 1] == "5000" and cmd[cmd.index("--seed") + 1] == "2"
     assert cmd[cmd.index("--rtc-max-delay") + 1] == "4" and cmd[cmd.index("--rtc-delay-dist") + 1] == "exp"
+    assert cmd[cmd.index("--meanflow-target") + 1] == "split"
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0) == tmp_path / "push-mean_flow" / "final"
+
+
+def test_meta_world_split_target_weights_get_their_own_directory_command_and_rows(tmp_path, monkeypatch):
+    import subprocess
+
+    from benchmarks.rtc_modes import arm_label, arm_labels, metaworld_section, row_key, rtc_suffix, train_metaworld
+
+    calls = []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 0, "split")
+    assert out == tmp_path / "push-mean_flow-rtc4expsplit-5000steps" / "final"
+    assert calls[0][calls[0].index("--meanflow-target") + 1] == "split"
+    # the plain weights and flow matching take no MeanFlow target
+    assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0, "exp", False, 5000, 0, "split").parent.name \
+        == "push-mean_flow-5000steps" and "--meanflow-target" not in calls[-1]
+    assert train_metaworld("metaworld/push", "flow_matching", tmp_path, 4, "exp", False, 5000, 0, "split").parent.name \
+        == "push-flow_matching-rtc4exp-5000steps" and "--meanflow-target" not in calls[-1]
+    assert rtc_suffix(4, "exp", False, "identity") == "-rtc4exp" and rtc_suffix(0, "exp", False, "split") == ""
+    assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 0, "identity").parent.name \
+        == "push-mean_flow-rtc4exp-5000steps" and calls[-1][calls[-1].index("--meanflow-target") + 1] == "identity"
+    identity = _mw_row("push-v3", "trained", 2, 40, 5000, 0)
+    split = {**_mw_row("push-v3", "trained", 2, 10, 5000, 0), "rtc_meanflow_target": "split"}
+    naive = _mw_row("push-v3", "naive", 2, 30, 5000, 0)
+    assert row_key(identity) != row_key(split) and arm_label(split) == "trained, split target"
+    assert arm_labels([split, identity, naive]) == ["naive", "trained", "trained, split target"]
+    page = "\n".join(metaworld_section([identity, split, naive], ["metaworld/push"]))
+    assert "| MF K=1 | 2 | trained | 1 | 0 | 80.0 |" in page and "| MF K=1 | 2 | trained, split target | 1 | 0 | 20.0 |" in page
+    assert "| MF K=1 | trained, split target | 20 |" in page and "interval-consistency" in page
+
+
+def _prefix_policy(seed=0):
+    torch.manual_seed(seed)
+    cfg = DecoderConfig(decoder_type="mean_flow", state_dim=3, action_dim=2, action_chunk_size=16, n_action_steps=4,
+                        hidden_size=32, num_hidden_layers=1, num_attention_heads=2, num_key_value_heads=1,
+                        rtc_max_delay=4, flow_prediction="sample")
+    return ActionDecoderPolicy(cfg).eval()
+
+
+def test_prefix_fit_scores_the_executed_rows_of_the_prefix_fed_chunk_against_the_demonstration():
+    from benchmarks.rtc_prefix_fit import NOISE_SEED, prefix_errors
+
+    policy, state = _prefix_policy(), torch.randn(6, 3)
+    noise = torch.randn(6, 16, 2, generator=torch.Generator().manual_seed(NOISE_SEED))
+    own = policy.sample({"state": state}, steps=1, noise=noise).actions              # [6, 16, 2]
+    errs = prefix_errors(policy, state, own, 1, [0, 2, 4])
+    assert errs[0] == 0.0                                  # d = 0: the plain chunk from the same noise, exactly
+    fed = policy.sample({"state": state}, steps=1, noise=noise, prev_chunk=own[:, :12], delay=4,
+                        rtc_mode="trained").actions
+    assert errs[4] == pytest.approx(float((fed - own)[:, 4:8].abs().mean()))
+    assert errs[2] > 0 and errs[4] > 0                      # the prefix changes what an untrained network plans
+
+
+def test_prefix_fit_page_gives_each_weight_and_seed_its_row_and_the_worst_delays_ratio():
+    from benchmarks.rtc_prefix_fit import prefix_section, row_key
+
+    def row(delay, err, target="identity", seed=0):
+        return {"task": "stick-pull-v3", "decoder": "mean_flow", "steps": 1, "delay": delay, "train_steps": 5000,
+                "train_seed": seed, "chunks": 100, "mean_abs_error": err, "rtc_delay_dist": "exp",
+                "rtc_meanflow_target": target, "date": "2026-11-27", "machine": "x86_64", "command": "c"}
+
+    rows = [row(0, 0.03), row(2, 0.12), row(4, 0.24), row(0, 0.03, "split"), row(2, 0.03, "split"),
+            row(4, 0.03, "split")]
+    page = "\n".join(prefix_section(rows))
+    assert "| stick-pull-v3 | MF K=1 | exp delays, identity target | 5000 | 0 | 100 | 0.030 | 0.120 | 0.240 | 8.0× |" in page
+    assert "| stick-pull-v3 | MF K=1 | exp delays, split target | 5000 | 0 | 100 | 0.030 | 0.030 | 0.030 | 1.0× |" in page
+    assert row_key(rows[0]) != row_key(rows[3]) and row_key(rows[0]) != row_key(row(0, 0.03, seed=1))
+    assert prefix_section([]) == []
+
+
+def test_meanflow_trained_with_rtc_defaults_to_the_split_target_and_saves_it_resolved(tmp_path):
+    assert DecoderConfig(decoder_type="mean_flow").meanflow_target == "identity"
+    assert DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4).meanflow_target == "split"
+    assert DecoderConfig(decoder_type="flow_matching", rtc_max_delay=4).meanflow_target == "identity"
+    assert DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4, meanflow_target="identity").meanflow_target \
+        == "identity"
+    path = tmp_path / "config.json"
+    DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4).to_json(path)
+    assert json.loads(path.read_text())["meanflow_target"] == "split"
+    assert DecoderConfig.from_json(path).meanflow_target == "split"
+
+
+def test_multimodal_rtc_weights_are_named_and_labelled_by_their_meanflow_target():
+    from benchmarks.rtc_modes import multimodal_section, rtc_target
+
+    assert rtc_target("mean_flow", 4) == "split" and rtc_target("mean_flow", 4, "identity") == "identity"
+    assert rtc_target("mean_flow", 0, "split") == "identity" and rtc_target("flow_matching", 4, "split") == "identity"
+
+    def row(arm, kept, target=None):
+        return {"task": "synthetic", "decoder": "mean_flow", "steps": 1, "delay": 2, "arm": arm, "samples": 1024,
+                "route_consistency": kept, "off_route": 0.0, "switch_jerk": 0.1, "train_steps": 5000,
+                "rtc_delay_dist": "exp" if arm == "trained" else None, "rtc_meanflow_target": target,
+                "date": "2026-11-27", "machine": "x86_64", "command": "c"}
+
+    page = "\n".join(multimodal_section([row("naive", 0.4), row("trained", 0.87), row("trained", 0.63, "split")]))
+    assert "| MF K=1 | 2 | trained | 87 % |" in page and "| MF K=1 | 2 | trained, split target | 63 % |" in page
+
+
+def test_benchmark_prefix_part_writes_its_rows_and_its_page_section(tmp_path, monkeypatch):
+    import benchmarks.rtc_prefix_fit as fit
+    from benchmarks.rtc import main
+
+    policy = _prefix_policy()
+    policy.config.extra["train"] = {"demos": 2, "seed": 0, "demo_noise": 0.0}
+    policy.save_pretrained(tmp_path / "w" / "final")
+    asked = []
+    monkeypatch.setattr(fit, "train_metaworld", lambda *a: asked.append(a) or tmp_path / "w" / "final")
+    monkeypatch.setattr(fit, "demo_chunks", lambda task, demos, seed, noise, horizon: (torch.randn(5, 3),
+                                                                                       torch.randn(5, horizon, 2)))
+    out, page = tmp_path / "prefix.json", tmp_path / "rtc.md"
+    main(["--part", "prefix", "--tasks", "metaworld/push", "--settings", "mean_flow:1", "--train-steps", "5000",
+          "--rtc-delay-dist", "exp", "--runs", str(tmp_path), "--prefix-json", str(out), "--table", str(page),
+          "--json", str(tmp_path / "h.json"), "--modes-json", str(tmp_path / "m.json"),
+          "--multimodal-json", str(tmp_path / "mm.json")])
+    rows = json.loads(out.read_text())
+    assert [r["delay"] for r in rows] == [0, 1, 2, 4] and rows[0]["mean_abs_error"] > 0
+    assert {r["rtc_meanflow_target"] for r in rows} == {"split"} and rows[0]["task"] == "push-v3"
+    assert asked[0][:4] == ("metaworld/push", "mean_flow", tmp_path, 4) and asked[0][6] == 5000
+    assert "## Trained RTC on its own training chunks" in page.read_text()
+    assert "| push-v3 | MF K=1 | exp delays, split target | 5000 | 0 | 5 |" in page.read_text()

@@ -136,10 +136,13 @@ class DecoderConfig:
     float32, inside u's call on CUDA; float32/float64 weights only) or "jvp" (exact, forward-mode AD;
     any dtype). The two train alike; their cost is measured in docs/benchmarks/meanflow_cost.md.
     Format-2 files, older than the field, read as "jvp"."""
-    meanflow_target: str = "identity"
+    meanflow_target: Optional[str] = None
     """The r ≠ t rows' regression target (`flows.losses.meanflow_loss`): "identity", the MeanFlow
     identity v − (t − r)·du/dt (`meanflow_dudt` applies); "split", interval consistency λ·u(z, t, s)
     + (1 − λ)·u(z_s, s, r) from two no-grad calls, no du/dt (docs/benchmarks/meanflow_ablations.md).
+    None (resolved on construction and saved resolved): "split" for a mean_flow decoder trained with
+    real-time chunking (`rtc_max_delay` > 0), whose one-step chunk under a committed prefix the identity
+    does not learn on every task (docs/benchmarks/rtc.md), "identity" otherwise.
     Format-4 files, older than the field, read as "identity"."""
     flow_prediction: str = "velocity"
     """What the flow matching / MeanFlow head outputs: "velocity" itself, or "sample", the clean chunk x̂
@@ -263,6 +266,8 @@ class DecoderConfig:
     options ("train"), the data's size ("data"), a dataset run's held-out validation ("validation")."""
 
     def __post_init__(self) -> None:
+        if self.meanflow_target is None:
+            self.meanflow_target = "split" if self.decoder_type == "mean_flow" and self.rtc_max_delay else "identity"
         self.validate()
 
     # ------------------------------------------------------------------ validation

@@ -108,8 +108,8 @@ class TrainConfig:
     """MeanFlow: power p of the adaptive loss weight 1/(error + c)^p (0: plain MSE)."""
     meanflow_time_dist: Literal["uniform", "logit_normal"] = "uniform"
     """MeanFlow: distribution of the times (t, r)."""
-    meanflow_target: Literal["identity", "split"] = "identity"
-    """MeanFlow: target of the r != t rows, the MeanFlow identity or interval consistency (split)."""
+    meanflow_target: Optional[Literal["identity", "split"]] = None
+    """MeanFlow: target of the r != t rows, the MeanFlow identity or interval consistency (None: split with --rtc-max-delay, else identity)."""
     flow_prediction: Optional[Literal["velocity", "sample"]] = None
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     rtc_max_delay: int = 0

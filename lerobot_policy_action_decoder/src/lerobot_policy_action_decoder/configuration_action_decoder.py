@@ -62,7 +62,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     meanflow_ratio_r_neq_t: float = 0.25
     meanflow_time_dist: str = "uniform"
     meanflow_adaptive_p: float = 0.5
-    meanflow_target: str = "identity"
+    meanflow_target: str | None = None     # None: "split" with rtc_max_delay > 0, else "identity" (the core's rule)
     # Action Expert
     hidden_size: int = 96
     num_hidden_layers: int = 3
