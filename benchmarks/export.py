@@ -242,45 +242,72 @@ def render(result: dict) -> str:
     ])
 
 
-def gpu_table(rows: list) -> str:
+def gpu_table(rows: list, runs: Optional[list] = None) -> str:
+    """The GPU latency table; `runs` (one label per row) adds a first column naming each row's run."""
     head = ("| decoder | K | B | eager ms | CUDA graphs ms | inductor ms | CUDA graphs ÷ eager | inductor ÷ eager | "
             "limit ms | eager ÷ limit | CUDA graphs ÷ limit |")
+    head = "| run " + head if runs else head
     lines = [head, "|---" * (head.count("|") - 1) + "|"]
-    for r in rows:
+    for i, r in enumerate(rows):
         ms, q, x = r["ms"], r["ratio_to_eager"], r["times_limit"]
         f = lambda d, k, fmt: fmt.format(d[k]) if k in d else "—"      # noqa: E731
-        lines.append(f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {ms['eager']:.3f} | "
+        lines.append(("| " + str(runs[i]) + " " if runs else "") +
+                     f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {ms['eager']:.3f} | "
                      f"{f(ms, 'compiled', '{:.3f}')} | {f(ms, 'inductor', '{:.3f}')} | {f(q, 'compiled', '{:.2f}×')} | "
                      f"{f(q, 'inductor', '{:.2f}×')} | {r['limit_ms']:.4f} | {x['eager']:.0f}× | "
                      f"{f(x, 'compiled', '{:.1f}×')} |")
     return "\n".join(lines)
 
 
+def gpu_runs(result: dict) -> list:
+    """The runs of a GPU result: `{"runs": [...]}` (`--append`) or one run."""
+    return result["runs"] if "runs" in result else [result]
+
+
+def _case(r: dict) -> str:
+    return f"{r['decoder']}:{r['steps']} B={r['batch']}"
+
+
 def render_gpu(result: dict) -> str:
-    m = result["machine"]
-    rows = result["rows"]
+    runs = gpu_runs(result)
+    several = len(runs) > 1
+    rows = [r for run in runs for r in run["rows"]]
+    labels = [i + 1 for i, run in enumerate(runs) for _ in run["rows"]] if several else None
+    measured = []
+    for i, run in enumerate(runs):
+        m = run["machine"]
+        measured.append(f"{f'- Run {i + 1}: m' if several else 'M'}easured {m['date']} on {m['machine']} (torch "
+                        f"{m['torch']}, CUDA {m.get('cuda')}, Python {m['python']}, float32 weights, float32 matmul "
+                        f"precision \"{m.get('float32_matmul_precision')}\", {m['rounds']} rounds + {m['warmup']} "
+                        f"warm-up), command `{m['command']}`.")
     cost = []
-    for r in rows:
+    for i, r in enumerate(rows):
         c = lambda k: "—" if r.get(k) is None else f"{r[k]:.1f}"      # noqa: E731
-        cost.append(f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {r['gflops_call'] * 1e3:.2f} | "
+        cost.append(("| " + str(labels[i]) + " " if several else "") +
+                    f"| {LABEL[r['decoder']]} | {r['steps']} | {r['batch']} | {r['gflops_call'] * 1e3:.2f} | "
                     f"{r['peak_gflops']:.0f} | {c('compile_s')} | {c('inductor_compile_s')} | "
                     f"{max(r['max_abs_diff'].values(), default=float('nan')):.1e} |")
-    skipped = result.get("skipped") or []
+    built = {_case(r) for r in rows}
+    skipped = list({s.split(" (")[0]: s for run in runs for s in run.get("skipped") or []      # the last run's reason
+                    if s.split(" (")[0] not in built}.values())
     failed = [f"{LABEL[r['decoder']]} K={r['steps']} B={r['batch']} {p}: {why}"
               for r in rows for p, why in r.get("failed", {}).items()]
+    cost_head = ("| decoder | K | B | MFLOP per network call | matmul rate GFLOP/s | compile s (CUDA graphs) | "
+                 "compile s (inductor) | max abs diff to eager |")
+    cost_head = "| run " + cost_head if several else cost_head
     return "\n".join([
         GPU_BEGIN,
         "## On a GPU",
         "",
-        f"Measured {m['date']} on {m['machine']} (torch {m['torch']}, CUDA {m.get('cuda')}, Python {m['python']}, "
-        f"float32 weights, float32 matmul precision \"{m.get('float32_matmul_precision')}\", {m['rounds']} rounds + "
-        f"{m['warmup']} warm-up), command `{m['command']}`.",
+        "\n".join(measured),
         "",
         "The same cases on the GPU, three ways: eager PyTorch; `compile_sampler` with its CUDA default, mode "
         "\"reduce-overhead\" (the chunk's kernels recorded once as a CUDA graph and replayed with one launch); "
         "and torch.compile's default mode (the same inductor kernels, launched one by one from Python). "
         "onnxruntime is not timed here (the CPU table above has it). Timers are CUDA events after a "
-        "synchronize (`benchmarks/timing.Clock`), paired rounds and ratios as above. The **limit** is K × the "
+        "synchronize (`benchmarks/timing.Clock`), paired rounds and ratios as above"
+        + ("; ratios compare paths within one run, and a case measured in two runs shows both" if several else "")
+        + ". The **limit** is K × the "
         "FLOPs of one network call ÷ the rate the GPU reaches on the network's largest matmul at that batch "
         "(float32, as the policy runs: it has no dtype option), timed as 200 matmuls in one CUDA graph, so "
         "that launch gaps do not count: it is the limit of this GPU's kernels at the network's shapes (the "
@@ -288,13 +315,12 @@ def render_gpu(result: dict) -> str:
         "",
         "### Latency per chunk (GPU)",
         "",
-        gpu_table(rows),
+        gpu_table(rows, labels),
         "",
         "### What the limit is made of, and the cost of compiling (GPU)",
         "",
-        "| decoder | K | B | MFLOP per network call | matmul rate GFLOP/s | compile s (CUDA graphs) | "
-        "compile s (inductor) | max abs diff to eager |",
-        "|---|---|---|---|---|---|---|---|",
+        cost_head,
+        "|---" * (cost_head.count("|") - 1) + "|",
         "\n".join(cost),
         *(["", f"Not built: {'; '.join(skipped)}."] if skipped else []),
         *(["", f"Failed to compile (—): {'; '.join(failed)}."] if failed else []),
@@ -304,7 +330,7 @@ def render_gpu(result: dict) -> str:
 
 def write_page(result: dict, page: Path) -> None:
     """Replace this device's generated section of `page` (or append it; a new page gets a title)."""
-    gpu = result["machine"].get("device", "cpu") == "cuda"
+    gpu = gpu_runs(result)[0]["machine"].get("device", "cpu") == "cuda"
     body, begin, end = (render_gpu(result), GPU_BEGIN, GPU_END) if gpu else (render(result), BEGIN, END)
     text = page.read_text() if page.is_file() else "# Inference at the hardware's limit\n"
     if begin in text:
@@ -329,6 +355,9 @@ def main(argv: Optional[list] = None) -> int:
                         help="machine named on the page (default: '2-core CPU VM, ...' on cpu, the GPU's name on cuda)")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                         help="cpu (eager, compiled, onnxruntime) or cuda (eager, CUDA graphs, inductor); default cpu")
+    parser.add_argument("--append", action="store_true",
+                        help="with --device cuda: add this run to --out's export_gpu.json and GPU section instead of "
+                             "replacing them")
     parser.add_argument("--build-budget-s", type=float, default=None,
                         help="stop building further cases once building took this many seconds (default: no limit)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -340,6 +369,8 @@ def main(argv: Optional[list] = None) -> int:
     cuda = args.device == "cuda"
     if cuda and not torch.cuda.is_available():
         parser.error(f"--device: cuda needs a CUDA build of torch and a GPU; torch {torch.__version__} sees none")
+    if args.append and not cuda:
+        parser.error(f"--append: only with --device cuda (the CPU section holds one run), got --device {args.device}")
     torch.set_num_threads(1)
     try:
         cases_arg = [(c.split(":")[0], int(c.split(":")[1])) for c in args.cases.split(",") if c]
@@ -391,7 +422,10 @@ def main(argv: Optional[list] = None) -> int:
                        onnxruntime=onnxruntime.__version__, command="OMP_NUM_THREADS=1 python -m benchmarks export "
                        + command)
     result = {"machine": machine, "rows": rows, **({"skipped": skipped} if skipped else {})}
-    (out / ("export_gpu.json" if cuda else "export.json")).write_text(json.dumps(result, indent=1))
+    path = out / ("export_gpu.json" if cuda else "export.json")
+    if args.append and cuda and path.is_file():
+        result = {"runs": [*gpu_runs(json.loads(path.read_text())), result]}
+    path.write_text(json.dumps(result, indent=1))
     write_page(result, out / "export.md")
     log(gpu_table(rows) if cuda else table(rows))
     return 0

@@ -14,8 +14,9 @@ defaults were developed on (`TUNED_ON`) belong to the development half; the othe
 hash of their name (`half`), fixed before any run. Each (task, decoder) run lives in its own
 directory under --runs (suffixed `_sac` or `_dsrl`); fine-tuning seed s > 0 writes `ft_s{s}`. Finished
 steps are skipped, an interrupted fine-tuning resumes, and a run whose row is already in --results
-(same task, decoder, algorithm, recipe and seed) is not run again, so the grid can be stopped and
-continued, on another machine too. The rows of finished runs are merged into
+(same task, decoder, algorithm, recipe, seed and budget) is not run again, so the grid can be stopped and
+continued, on another machine too; a finished run of a smaller env-step budget is continued to the current one in
+its directory (its row at the smaller budget stays in --results). The rows of finished runs are merged into
 docs/benchmarks/rl_finetune.json (which keeps rows whose run directories are gone), and the table
 and a plot of the learning curves are written from it; text below the table's notes marker is kept.
 """
@@ -42,8 +43,11 @@ RUN_FIELDS = RUN_OPTIONS | {"task", "algo", "sigma", "seed"}
 """`finetune` options that set a run's budget, identity or logging, not its recipe (σ has its own column)."""
 BC_DEMOS, BC_STEPS, CPU_MINUTES = 3, 2000, 45.0
 """The protocol's BC (demonstrations, training steps) and fine-tuning budget (CPU-minutes per run)."""
-ENV_STEPS = {"dsrl": 100_000}
-"""Environment steps per run where the protocol caps them (DSRL); the others stop at the CPU budget."""
+ENV_STEPS = {"dsrl": 200_000}
+"""Environment steps per run where the protocol caps them (DSRL, `finetune`'s default); the others stop at the
+CPU budget."""
+UNCAPPED = 10_000_000
+"""The env-step budget of the algorithms the protocol caps by CPU time alone."""
 BAND = (0.15, 0.65)
 """The rule's band of 3-demo BC success (flow matching, K = 10, 50 episodes): room to gain, and a
 policy that succeeds often enough for its rollouts to carry a signal."""
@@ -101,8 +105,19 @@ def _run(cmd: list[str], log: Path) -> None:
                        env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
+def env_budget(algo: str) -> int:
+    """The env steps a run of `algo` is given (`ENV_STEPS`)."""
+    return ENV_STEPS.get(algo, UNCAPPED)
+
+
+def _stale(evaluation: Path, checkpoint: Path) -> bool:
+    """Whether `evaluation` is missing or older than the weights in `checkpoint` (a continued run's)."""
+    weights = checkpoint / "model.safetensors"
+    return not evaluation.is_file() or (weights.is_file() and evaluation.stat().st_mtime < weights.stat().st_mtime)
+
+
 def _eval(checkpoint: Path, out: Path, sampler: str, args, log: Path, steps: int = 0) -> None:
-    if not out.is_file():
+    if _stale(out, checkpoint):
         _run([*CLI, "eval", "--checkpoint", str(checkpoint), "--episodes", str(args.episodes), "--sampler", sampler,
               "--seed", "0", "--output", str(out), *(["--steps", str(steps)] if steps else [])], log)
 
@@ -166,10 +181,12 @@ def run_one(task: str, decoder: str, seed: int, args) -> None:
         if budget != args.cpu_minutes:
             raise SystemExit(f"--cpu-minutes: {ft} finished a run of {budget} CPU-minutes, not {args.cpu_minutes}; "
                              f"pass --runs another directory to measure another budget")
-    if not (ft / "final" / "model.safetensors").is_file():
+    smaller = (ft / "finetune_log.json").is_file() and \
+        json.loads((ft / "finetune_log.json").read_text())["config"]["env_steps"] < env_budget(args.algo)
+    if smaller or not (ft / "final" / "model.safetensors").is_file():      # smaller: continued to the budget
         resume = ["--resume"] if (ft / "checkpoints" / "last").is_file() else []
         _run([*CLI, "finetune", "--checkpoint", str(bc / "final"), "--output-dir", str(ft), "--algo", args.algo,
-              "--env-steps", str(ENV_STEPS.get(args.algo, 10_000_000)), "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
+              "--env-steps", str(env_budget(args.algo)), "--max-cpu-minutes", str(args.cpu_minutes), "--eval-every", "10",
               "--seed", str(seed), *args.finetune_args, *resume], log)
     if args.algo != "dsrl":         # DSRL's policy is the noise actor's mean through the deterministic sampler
         _eval(ft / "final", run / f"ft_eval_sde{suffix}.json", "sde", args, log)
@@ -247,7 +264,7 @@ def collect(runs: Path) -> list[dict]:
     for run in sorted(p for p in runs.iterdir() if (p / "bc_eval.json").is_file()):
         for ft in sorted(d for d in run.glob("ft*") if d.is_dir()):     # ft, ft_s1, …
             suffix = ft.name[2:]
-            if not (run / f"ft_eval_ode{suffix}.json").is_file():
+            if _stale(run / f"ft_eval_ode{suffix}.json", ft / "final"):
                 continue
             bc = json.loads((run / "bc_eval.json").read_text())
             ft_k = json.loads((run / f"ft_eval_ode{suffix}.json").read_text())["steps"]
@@ -266,7 +283,8 @@ def collect(runs: Path) -> list[dict]:
                          # σ scales the chain methods' SDE; DSRL's policy has none
                          "sigma": None if log["config"]["algo"] == "dsrl" else log["config"].get("sigma"),
                          "recipe": recipe(log["config"]),
-                         "cpu_budget": log["config"].get("max_cpu_minutes"), "bc_demos": trained.get("demos"),
+                         "cpu_budget": log["config"].get("max_cpu_minutes"), "env_budget": log["config"].get("env_steps"),
+                         "bc_demos": trained.get("demos"),
                          "bc_train_steps": trained.get("steps"),
                          "seed": log["config"].get("seed", 0), "half": half(log["task"]),
                          "bc": bc["success_rate"], "bc_steps": bc["steps"], "bc_at_ft_k": bc_at_k["success_rate"],
@@ -285,11 +303,12 @@ def collect(runs: Path) -> list[dict]:
 
 
 def _key(r: dict) -> tuple:
-    """A run's identity: what it fine-tuned, how (recipe, σ, budget) and from which BC policy; rows
+    """A run's identity: what it fine-tuned, how (recipe, σ, budgets) and from which BC policy; rows
     recorded before a field had the protocol's value."""
     return (r["task"], r["decoder"], r["algo"], r.get("recipe", "defaults"), r.get("seed", 0),
             float(r.get("sigma") or FinetuneConfig.sigma), float(r.get("cpu_budget") or CPU_MINUTES),
-            int(r.get("bc_demos") or BC_DEMOS), int(r.get("bc_train_steps") or BC_STEPS))
+            int(r.get("bc_demos") or BC_DEMOS), int(r.get("bc_train_steps") or BC_STEPS),
+            int(r.get("env_budget") or env_budget(r["algo"])))
 
 
 def planned_recipe(finetune_args: list[str]) -> str:
@@ -319,9 +338,12 @@ def _changed(r: dict) -> str:
 
 
 def _how(r: dict) -> str:
-    """The algorithm, σ scale and recipe of a row: "ppo", "ppo, a = 0.25", "ppo, a = 0.25, lr_schedule=adaptive"."""
+    """The algorithm, σ scale, recipe and an env-step budget other than the protocol's of a row: "ppo",
+    "ppo, a = 0.25", "ppo, a = 0.25, lr_schedule=adaptive", "dsrl, env_steps=100000"."""
     how = r["algo"] if r.get("sigma") is None else f"{r['algo']}, a = {r['sigma']:g}"
-    return f"{how}, {_changed(r)}" if _changed(r) else how
+    how = f"{how}, {_changed(r)}" if _changed(r) else how
+    budget = int(r.get("env_budget") or env_budget(r["algo"]))
+    return how if budget == env_budget(r["algo"]) else f"{how}, env_steps={budget}"
 
 
 def _num(r: dict, key: str, scale: float, fmt: str) -> str:
@@ -549,7 +571,7 @@ def main(argv=None) -> None:
         sigma = planned_config(args.finetune_args).sigma
         skipped = [(t, d, s) for t, d, s in grid
                    if (t.split("/")[-1], d, args.algo, how, s, float(sigma), float(args.cpu_minutes), args.demos,
-                       args.bc_steps) in done]
+                       args.bc_steps, env_budget(args.algo)) in done]
         for task, dec, seed in skipped:
             print(f"{task} {dec} seed {seed}: recorded in {args.results}; delete its row to run it again")
         grid = [job for job in grid if job not in skipped]

@@ -4,6 +4,7 @@
 #       -> $OUT/export/export_gpu.json and the GPU section of $OUT/export/export.md
 #   (2) the speed suite's sampler-overhead section on CUDA -> $OUT/suite/ (README.md, results.json)
 #   (3) trained and guided RTC chunk against a plain chunk, B = 1 -> $OUT/rtc_latency_cuda.json
+#   (4) the RTC page's chunk-cost part (plain against trained, B = 1) -> $OUT/rtc_cost_cuda.json
 # Each step runs under its own `timeout`; a failed or timed-out step does not stop the next.
 #
 #   PYTHONPATH=$PWD/src:$PWD bash scripts/gpu_check.sh          # on the GPU machine
@@ -29,12 +30,14 @@ if [ "$DEVICE" = cuda ]; then
                  --rounds "${ROUNDS:-20}" --warmup 3 --build-budget-s 70)   # cut last: the least telling cases
     SUITE_ARGS=(--quick)
     RTC_ARGS=(--rounds 20)
-    T_EXPORT=170 T_SUITE=60 T_RTC=45
+    COST_ARGS=(--latency-reps 100)
+    T_EXPORT=170 T_SUITE=60 T_RTC=45 T_COST=45
 else                                     # the CPU fallback: tiny networks, the same code paths
     EXPORT_ARGS=(--tiny --cases mean_flow:1,flow_matching:10 --batches 1 --rounds "${ROUNDS:-2}" --warmup 1)
     SUITE_ARGS=(--tiny)
     RTC_ARGS=(--tiny --rounds 3 --warmup 1)
-    T_EXPORT=600 T_SUITE=300 T_RTC=120
+    COST_ARGS=(--latency-reps 3)
+    T_EXPORT=600 T_SUITE=300 T_RTC=120 T_COST=120
 fi
 
 python3 - <<'EOF'
@@ -64,5 +67,7 @@ step suite_sampling "$T_SUITE" python3 -m benchmarks --device "$DEVICE" --sectio
     --out "$OUT/suite" "${SUITE_ARGS[@]}"
 step rtc_latency "$T_RTC" python3 -m benchmarks rtc-latency --device "$DEVICE" --out "$OUT/rtc_latency_$DEVICE.json" \
     "${RTC_ARGS[@]}"
+step rtc_cost "$T_COST" python3 -m benchmarks rtc --part cost --device "$DEVICE" --cost-json "$OUT/rtc_cost_$DEVICE.json" \
+    "${COST_ARGS[@]}"
 echo "== summary ($OUT)"
 cat "$SUMMARY"

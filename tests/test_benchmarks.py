@@ -3,6 +3,7 @@
 import argparse
 import json
 import math
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -232,6 +233,56 @@ def test_rl_table_measures_the_gain_with_one_sampler_at_the_fine_tunings_k(monke
     md.write_text(md.read_text() + "What the table says.\n")
     rl_finetune.write_report(rows[:0], md, tmp_path / "t.png", args)   # rebuilt: the table changes, the notes stay
     assert "reach-v3" not in md.read_text() and md.read_text().endswith(rl_finetune.NOTES + "\nWhat the table says.\n")
+
+
+def test_rl_rows_of_a_smaller_env_budget_stay_beside_the_protocols(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    def row(budget, ft_ode):
+        return {"task": "reach-v3", "decoder": "mean_flow", "algo": "dsrl", "env_budget": budget, "bc": 0.2,
+                "bc_steps": 1, "bc_at_ft_k": 0.2, "ft_k": 1, "ft_sde": None, "ft_ode": ft_ode, "cpu_min": 20.0,
+                "env_steps": budget + 800, "measured": "2026-11-28", "curve": []}
+
+    results = tmp_path / "rl.json"
+    rl_finetune.merge(results, [row(100_000, 0.5)])
+    merged = rl_finetune.merge(results, [row(rl_finetune.ENV_STEPS["dsrl"], 0.7)])   # the same run, continued
+    assert [r["ft_ode"] for r in merged] == [0.5, 0.7]
+    text = rl_finetune.write_report(merged, tmp_path / "t.md", tmp_path / "t.png",
+                                    argparse.Namespace(episodes=50, demos=3, bc_steps=2000, results="r.json"))
+    assert "- dev half, mean_flow (dsrl, env_steps=100000): mean gain +30.0 points" in text
+    assert "- dev half, mean_flow (dsrl): mean gain +50.0 points" in text
+
+
+def test_rl_harness_continues_a_run_of_a_smaller_env_budget_and_evaluates_it_again(monkeypatch, tmp_path):
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks import rl_finetune
+
+    args = argparse.Namespace(runs=str(tmp_path / "runs"), algo="dsrl", demos=3, bc_steps=2000, episodes=50,
+                              cpu_minutes=45.0, finetune_args=[])
+    run = rl_finetune.run_dir("metaworld/reach", "mean_flow", args)
+    ft = run / "ft"
+    for d in (run / "bc" / "final", ft / "final", ft / "checkpoints"):
+        d.mkdir(parents=True)
+    (ft / "checkpoints" / "last").write_text("step_0000063")
+    (run / "bc" / "final" / "model.safetensors").write_text("w")
+    (run / "bc_eval.json").write_text(json.dumps({"steps": 1, "success_rate": 0.2}))
+    (ft / "finetune_log.json").write_text(json.dumps({"config": {"env_steps": 100_000, "max_cpu_minutes": 45.0}}))
+    evaluation = run / "ft_eval_ode.json"
+    evaluation.write_text("{}")
+    os.utime(evaluation, (1, 1))
+    (ft / "final" / "model.safetensors").write_text("w")              # newer than the evaluation: it is stale
+    calls = []
+    monkeypatch.setattr(rl_finetune, "_run", lambda cmd, log: calls.append(cmd))
+    rl_finetune.run_one("metaworld/reach", "mean_flow", 0, args)
+    finetune = next(c for c in calls if "finetune" in c)
+    assert finetune[finetune.index("--env-steps") + 1] == str(rl_finetune.ENV_STEPS["dsrl"]) and "--resume" in finetune
+    assert any("eval" in c and str(evaluation) in c for c in calls), "the continued weights are evaluated again"
+    calls.clear()
+    (ft / "finetune_log.json").write_text(json.dumps({"config": {"env_steps": 200_000, "max_cpu_minutes": 45.0}}))
+    evaluation.write_text("{}")                                          # fresh: nothing to run
+    rl_finetune.run_one("metaworld/reach", "mean_flow", 0, args)
+    assert calls == []
 
 
 def test_rl_results_keep_earlier_rows_and_take_fresh_ones(monkeypatch, tmp_path):
@@ -656,6 +707,28 @@ def test_export_benchmark_gpu_section_sits_beside_the_cpu_one(tmp_path):
     gpu = text.split(export.GPU_BEGIN)[1]
     assert "| Flow matching | 2 | 3 |" in gpu and "test GPU" in gpu and "Not built" not in gpu
     assert "| MeanFlow | 1 | 1 |" in text.split(export.GPU_BEGIN)[0]
+
+    # --append: a second run's rows join the section, each row naming its run; a case that one run skipped and
+    # the other built is no longer listed as not built
+    second = [dict(rows[0], batch=32, failed={})]
+    two = {"runs": [{"machine": machine, "rows": rows, "skipped": ["flow_matching:2 B=32 (past --build-budget-s 1)",
+                                                                  "DDPM:10 B=1 (past --build-budget-s 1)"]},
+                    {"machine": dict(machine, command="python -m benchmarks export --append"), "rows": second,
+                     "skipped": ["DDPM:10 B=1 (past --build-budget-s 9)"]}]}
+    export.write_page(two, out / "export.md")
+    gpu = (out / "export.md").read_text().split(export.GPU_BEGIN)[1]
+    assert "| 1 | Flow matching | 2 | 3 |" in gpu and "| 2 | Flow matching | 2 | 32 |" in gpu
+    assert "- Run 2: measured" in gpu and "--append`" in gpu
+    assert "Not built: DDPM:10 B=1 (past --build-budget-s 9)." in gpu
+
+
+def test_export_benchmark_append_is_refused_on_the_cpu(capsys):
+    from benchmarks import export
+
+    with pytest.raises(SystemExit):
+        export.main(["--append", "--tiny"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--append: only with --device cuda" in err and "got --device cpu" in err
 
 
 def test_gpu_benchmarks_refuse_cuda_without_a_gpu_in_one_line(capsys):

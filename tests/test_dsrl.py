@@ -255,6 +255,15 @@ def test_dsrl_steers_a_ddpm_decoder_through_its_deterministic_solver():
     assert not torch.equal(decode(policy, batch, noise), decode(policy, batch, -noise))
 
 
+def test_each_algorithm_fills_the_options_left_at_none_with_its_own_defaults():
+    from action_decoder.rl.finetune import FinetuneConfig, with_defaults
+
+    dsrl, ppo = (with_defaults(FinetuneConfig(checkpoint="-", algo=a)) for a in ("dsrl", "ppo"))
+    assert (dsrl.env_steps, dsrl.num_envs, dsrl.critic_lr) == (200_000, 8, 3e-4)
+    assert (ppo.env_steps, ppo.num_envs, ppo.critic_lr) == (100_000, 32, 1e-3)
+    assert with_defaults(FinetuneConfig(checkpoint="-", algo="dsrl", env_steps=4800)).env_steps == 4800
+
+
 def test_dsrl_refuses_bad_options_in_one_line(tmp_path, capsys):
     ckpt = tmp_path / "bc"
     _bc().save_pretrained(ckpt)

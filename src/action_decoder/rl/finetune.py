@@ -78,8 +78,8 @@ class FinetuneConfig:
     """RL algorithm: ppo or sac train the decoder through its SDE chain; dsrl trains a noise actor that steers the frozen decoder."""
     task: Optional[str] = None
     """Task to fine-tune on (default: the checkpoint's task; required for multi-task checkpoints)."""
-    env_steps: int = 100_000
-    """Environment steps to collect (the run stops at the first iteration boundary past it)."""
+    env_steps: Optional[int] = None
+    """Environment steps to collect, stopping at the first iteration boundary past it (default 100 000; 200 000 with dsrl)."""
     max_cpu_minutes: float = 0.0
     """Budget in CPU minutes of fine-tuning (0: none)."""
     num_envs: Optional[int] = None
@@ -192,7 +192,8 @@ def eval_rank(row: dict) -> tuple:
     return row.get("success_sde", row["success_ode"]), row["success_ode"]
 
 
-ALGO_DEFAULTS = {"num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
+ALGO_DEFAULTS = {"env_steps": {"ppo": 100_000, "sac": 100_000, "dsrl": 200_000},
+                 "num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
                  "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 2.0},
                  "critic_lr": {"ppo": 1e-3, "sac": 1e-3, "dsrl": 3e-4}}
 """The values an option left at None takes, per algorithm."""
