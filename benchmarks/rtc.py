@@ -264,6 +264,9 @@ def main(argv=None) -> None:
                         "trained-RTC chunks at batch 1 on --device, no checkpoints")
     p.add_argument("--device", default="cpu", help="cost part: the torch device (cpu, cuda)")
     p.add_argument("--cost-json", default="docs/benchmarks/rtc_cost.json", help="cost part: rows")
+    p.add_argument("--cost-runtimes", nargs="+", default=["eager", "onnxruntime", "compiled"],
+                   choices=["eager", "onnxruntime", "compiled"],
+                   help="cost part: runtimes timed (onnxruntime on a CPU only)")
     p.add_argument("--tasks", nargs="+", default=TASKS)
     p.add_argument("--delays", nargs="+", type=int, default=None,
                    help="simulated inference delays in control steps (default 0 1 2 4; horizons: 0 2 4)")

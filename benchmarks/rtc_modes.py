@@ -98,15 +98,54 @@ def retime(args) -> None:
         path.write_text(json.dumps(rows, indent=1))
 
 
+COST_RUNTIMES = ("eager", "onnxruntime", "compiled")
+
+
+def _cost_calls(policy, runtime: str, state: torch.Tensor, prev: torch.Tensor, steps: int, workdir: Path) -> dict:
+    """{"naive": call, "trained": call}: one plain chunk and one trained-RTC chunk (d = MAX_DELAY) for one state,
+    in `runtime`: eager PyTorch (`policy.sample`), onnxruntime (the plain graph against the `--rtc` graph, one
+    thread) or `compile_sampler` (its device's default mode, plain against rtc=True)."""
+    cfg = policy.config
+    if runtime == "eager":
+        counter = iter(range(10**9))
+        return {arm: (lambda a: lambda: chunk(policy, state, steps, a, prev, MAX_DELAY,
+                                              torch.Generator(state.device).manual_seed(next(counter))))(arm)
+                for arm in ("naive", "trained")}
+    noise = torch.randn(1, H, cfg.action_dim, generator=torch.Generator().manual_seed(0)).to(state.device)
+    if runtime == "onnxruntime":
+        from action_decoder.runtime import OnnxPolicy
+
+        plain = OnnxPolicy(policy.export_onnx(workdir / f"{cfg.decoder_type}_k{steps}.onnx", steps=steps), threads=1)
+        rtc = OnnxPolicy(policy.export_onnx(workdir / f"{cfg.decoder_type}_k{steps}_rtc.onnx", steps=steps, rtc=True),
+                         threads=1)
+        s, n, c = state.cpu().numpy(), noise.cpu().numpy(), prev.cpu().numpy()
+        return {"naive": lambda: plain.predict_action_chunk(s, n),
+                "trained": lambda: rtc.predict_action_chunk(s, n, committed=c, delay=MAX_DELAY)}
+    from action_decoder.compiled import compile_sampler
+
+    plain, rtc = compile_sampler(policy, steps=steps), compile_sampler(policy, steps=steps, rtc=True)
+    batch = {"state": state}
+    calls = {"naive": lambda: plain(batch, noise), "trained": lambda: rtc(batch, noise, prev_chunk=prev, delay=MAX_DELAY)}
+    for _ in range(3):                         # compile; CUDA graphs record on the second call, replay from the third
+        for call in calls.values():
+            call()
+    return calls
+
+
 def chunk_cost(args, command: str) -> list[dict]:
     """Plain against trained-RTC chunks (d = 4) at batch 1 on a network of `action-decoder train`'s default
     size (hidden 96, 3 layers, H = 16, Meta-World's 39-d state, random weights: the cost does not depend on
-    them), each setting interleaved, --latency-reps calls each. CPU: the process's CPU time; CUDA: wall time
-    between synchronisations. Rows to --cost-json."""
+    them), each setting and runtime (--cost-runtimes: eager, onnxruntime on a CPU, compiled) interleaved,
+    --latency-reps calls each. CPU: the process's CPU time; CUDA: wall time between synchronisations. Rows
+    to --cost-json."""
+    import tempfile
+
     from action_decoder import ActionDecoderPolicy, DecoderConfig
 
     device = torch.device(args.device)
+    runtimes = [r for r in args.cost_runtimes if not (r == "onnxruntime" and device.type == "cuda")]
     rows = []
+    workdir = tempfile.TemporaryDirectory(prefix="rtc_cost_")
     for decoder, steps in args.settings:
         torch.manual_seed(0)
         cfg = DecoderConfig(decoder_type=decoder, state_dim=39, action_dim=4, action_chunk_size=H, hidden_size=96,
@@ -118,31 +157,34 @@ def chunk_cost(args, command: str) -> list[dict]:
         policy = ActionDecoderPolicy(cfg, stats).to(device).eval()
         state, prev = torch.zeros(1, 39, device=device), torch.zeros(1, H - S, 4, device=device)
         clock = time.process_time if device.type == "cpu" else time.perf_counter
-        times = {"naive": [], "trained": []}
-        with torch.no_grad():
-            for rep in range(args.latency_reps + 10):
-                for arm in times:
-                    if device.type == "cuda":
-                        torch.cuda.synchronize(device)
-                    t0 = clock()
-                    chunk(policy, state, steps, arm, prev, MAX_DELAY, torch.Generator(device).manual_seed(rep))
-                    if device.type == "cuda":
-                        torch.cuda.synchronize(device)
-                    if rep >= 10:
-                        times[arm].append(clock() - t0)
-        plain, trained = (1000 * statistics.median(times[a]) for a in ("naive", "trained"))
-        rows.append({"decoder": decoder, "steps": steps, "delay": MAX_DELAY, "plain_ms": plain, "trained_ms": trained,
-                     "ratio": trained / plain, "reps": args.latency_reps, "device": str(device),
-                     "clock": "CPU time" if device.type == "cpu" else "wall time, synchronised",
-                     "torch": torch.__version__, "command": command, "date": time.strftime("%Y-%m-%d"),
-                     "machine": (torch.cuda.get_device_name(device) if device.type == "cuda" else
-                                 f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
-                                 f"{torch.get_num_threads()} torch thread")})
-        print(f"{LABEL[(decoder, steps)]} {device}: plain {plain:.3f} ms, trained (d = {MAX_DELAY}) {trained:.3f} ms, "
-              f"{trained / plain:.3f}x", flush=True)
+        for runtime in runtimes:
+            calls = _cost_calls(policy, runtime, state, prev, steps, Path(workdir.name))
+            times = {"naive": [], "trained": []}
+            with torch.no_grad():
+                for rep in range(args.latency_reps + 10):
+                    for arm in times:
+                        if device.type == "cuda":
+                            torch.cuda.synchronize(device)
+                        t0 = clock()
+                        calls[arm]()
+                        if device.type == "cuda":
+                            torch.cuda.synchronize(device)
+                        if rep >= 10:
+                            times[arm].append(clock() - t0)
+            plain, trained = (1000 * statistics.median(times[a]) for a in ("naive", "trained"))
+            rows.append({"decoder": decoder, "steps": steps, "delay": MAX_DELAY, "runtime": runtime, "plain_ms": plain,
+                         "trained_ms": trained, "ratio": trained / plain, "reps": args.latency_reps,
+                         "device": str(device), "clock": "CPU time" if device.type == "cpu" else "wall time, synchronised",
+                         "torch": torch.__version__, "command": command, "date": time.strftime("%Y-%m-%d"),
+                         "machine": (torch.cuda.get_device_name(device) if device.type == "cuda" else
+                                     f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
+                                     f"{torch.get_num_threads()} torch thread")})
+            print(f"{LABEL[(decoder, steps)]} {device} {runtime}: plain {plain:.3f} ms, trained (d = {MAX_DELAY}) "
+                  f"{trained:.3f} ms, {trained / plain:.3f}x", flush=True)
+    workdir.cleanup()
     out = Path(args.cost_json)
     old = json.loads(out.read_text()) if out.is_file() else []
-    key = lambda r: (r["decoder"], r["steps"], r["device"], r["machine"])           # noqa: E731
+    key = lambda r: (r["decoder"], r["steps"], r["device"], r["machine"], r.get("runtime", "eager"))   # noqa: E731
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps([r for r in old if key(r) not in {key(n) for n in rows}] + rows, indent=1))
     return rows
@@ -617,9 +659,15 @@ def cost_section(rows: list[dict]) -> list[str]:
              *[f"Measured {d} ({m}) by `{c}`." for d, m, c in meta], "",
              f"Batch 1, a network of `action-decoder train`'s default size (hidden 96, 3 layers, H = {H}, a 39-d "
              f"state) with random weights, the trained arm at d = {MAX_DELAY}; median over interleaved calls (CPU: "
-             f"the process's CPU time; CUDA: wall time between synchronisations). Target: ≤ 1.05×.", "",
-             "| setting | device | calls | plain ms | trained ms | trained ÷ plain |", "|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {r['machine']} | {r['reps']} | {r['plain_ms']:.3f} | "
-                     f"{r['trained_ms']:.3f} | {r['ratio']:.3f}× |")
+             f"the process's CPU time; CUDA: wall time between synchronisations). Runtimes: eager PyTorch "
+             f"(`policy.sample`); onnxruntime, one thread, the plain graph against the `export --rtc` graph "
+             f"(`OnnxPolicy.predict_action_chunk`); compiled, `compile_sampler` against `compile_sampler(rtc=True)` "
+             f"(inductor's default mode on a CPU, CUDA graphs on a GPU). Target: ≤ 1.05×.", "",
+             "| setting | device | runtime | calls | plain ms | trained ms | trained ÷ plain |",
+             "|---|---|---|---|---|---|---|"]
+    order = {r: i for i, r in enumerate(COST_RUNTIMES)}
+    for r in sorted(rows, key=lambda r: (r["machine"] != rows[0]["machine"], r["machine"],
+                                         order.get(r.get("runtime", "eager"), 9), r["decoder"], r["steps"])):
+        lines.append(f"| {LABEL[(r['decoder'], r['steps'])]} | {r['machine']} | {r.get('runtime', 'eager')} | {r['reps']} "
+                     f"| {r['plain_ms']:.3f} | {r['trained_ms']:.3f} | {r['ratio']:.3f}× |")
     return lines + [""]

@@ -76,3 +76,34 @@ def test_eval_policy_fn_with_the_compiled_sampler_draws_the_checkpoints_noise():
     assert np.abs(compiled(states, np.zeros(3, np.int64), **keys) - want).max() <= 1e-5
     other = plain(states, np.zeros(3, np.int64), episode_seeds=keys["episode_seeds"], plan_indices=np.array([1, 2, 1]))
     assert np.abs(other[0] - want[0]).max() > 1e-3 and np.abs(other[1:] - want[1:]).max() <= 1e-6
+
+
+def test_compiled_trained_rtc_sampler_matches_eager_at_every_delay():
+    """One `compile_sampler(rtc=True)` graph serves delays 0..M: each is `sample(prev_chunk, delay, "trained")`;
+    `eval --compile --rtc`'s policy_fn hands it the previous chunks."""
+    import numpy as np
+
+    from action_decoder.evaluate import make_policy_fn
+
+    torch.manual_seed(0)
+    policy = ActionDecoderPolicy(DecoderConfig(decoder_type="mean_flow", num_inference_timesteps=1, rtc_max_delay=2,
+                                               **TINY)).eval()
+    state, noise, prev = torch.randn(2, 5), torch.randn(2, 4, 2), torch.randn(2, 3, 2).tanh()
+    sample = compile_sampler(policy, backend="aot_eager", rtc=True)
+    for delay in (0, 1, 2):
+        want = policy.sample({"state": state}, noise=noise, prev_chunk=prev, delay=delay, rtc_mode="trained").actions
+        got = sample({"state": state}, noise, prev_chunk=prev, delay=delay)
+        assert (got - want).abs().max() <= 1e-5 and (got[:, :delay] == prev[:, :delay]).all()
+    assert (sample({"state": state}, noise) - policy.predict_action_chunk({"state": state}, noise=noise)).abs().max() <= 1e-5
+    with pytest.raises(ValueError, match="delay: 3 exceeds rtc_max_delay=2"):
+        sample({"state": state}, noise, prev_chunk=prev, delay=3)
+    with pytest.raises(ValueError, match="prev_chunk: this compiled sampler has no real-time chunking"):
+        compile_sampler(policy, backend="aot_eager")({"state": state}, noise, prev_chunk=prev, delay=1)
+    with pytest.raises(ValueError, match="rtc: the graph feeds committed actions"):
+        compile_sampler(ActionDecoderPolicy(DecoderConfig(decoder_type="mean_flow", **TINY)), rtc=True)
+
+    states = np.random.default_rng(0).normal(size=(2, 5)).astype(np.float32)
+    keys = {"episode_seeds": np.array([5, 6]), "plan_indices": np.array([1, 2]), "prev_chunks": prev.numpy(), "delay": 2}
+    eager = make_policy_fn(policy, 1, None, None, torch.Generator().manual_seed(4), rtc_mode="trained")
+    compiled = make_policy_fn(policy, 1, None, None, torch.Generator().manual_seed(4), sample)
+    assert np.abs(compiled(states, np.zeros(2, np.int64), **keys) - eager(states, np.zeros(2, np.int64), **keys)).max() <= 1e-5

@@ -46,6 +46,26 @@ def test_per_token_times_equal_the_per_sample_path_when_all_times_are_equal():
         net(x, torch.rand(4, H + 1), r, state)
 
 
+def test_clean_rows_are_the_per_token_path_with_those_rows_at_one():
+    """`clean_rows` with per-sample t, r (the exported graph's form, its time embeddings constants) gives the
+    network of per-token times 1 on the marked rows and t, r elsewhere; a bad mask is one line."""
+    torch.manual_seed(2)
+    net = ActionExpert(DecoderConfig(decoder_type="mean_flow", state_dim=5, action_dim=D, action_chunk_size=H,
+                                     hidden_size=32, num_hidden_layers=2)).double()
+    x, state = torch.randn(4, H, D, dtype=torch.float64), torch.randn(4, 5, dtype=torch.float64)
+    t = torch.rand(4, dtype=torch.float64)
+    r = t + (1 - t) * torch.rand(4, dtype=torch.float64)                        # t ≤ r ≤ 1
+    keep = prefix_mask(torch.tensor([0, 1, 3, 7]), H)
+    want = net(x, torch.where(keep, 1.0, t[:, None]), torch.where(keep, 1.0, r[:, None]), state)
+    torch.testing.assert_close(net(x, t, r, state, clean_rows=keep), want, rtol=0, atol=1e-10)
+    assert (want[1:] - net(x, t, r, state)[1:]).abs().max() > 1e-3            # the marked rows change the output
+    for bad in (keep.double(), keep[:, :-1]):
+        with pytest.raises(ValueError, match=r"clean_rows: expected a bool tensor \[4, 8\] with t and r per sample"):
+            net(x, t, r, state, clean_rows=bad)
+    with pytest.raises(ValueError, match="clean_rows: .* t \\[4, 8\\]"):
+        net(x, t[:, None].expand(4, H), r, state, clean_rows=keep)
+
+
 def test_per_token_offsets_are_each_tokens_own_embedding_less_the_earliest():
     """Any times per token (not only a prefix at 1): token j gets embed_t(t_j) − embed_t(min t) +
     embed_r(r_j) − embed_r(min r), the t and r tokens the earliest times' embeddings; the sinusoidal
@@ -537,12 +557,19 @@ def test_benchmark_cost_part_times_plain_and_trained_chunks_side_by_side(tmp_pat
     from benchmarks.rtc import main
 
     out = tmp_path / "cost.json"
+    pytest.importorskip("onnxruntime")
+    from benchmarks.rtc_modes import cost_section
+
     main(["--part", "cost", "--settings", "mean_flow:1", "flow_matching:10", "--latency-reps", "2",
-          "--cost-json", str(out)])
+          "--cost-runtimes", "eager", "onnxruntime", "--cost-json", str(out)])
     rows = json.loads(out.read_text())
-    assert [(r["decoder"], r["steps"]) for r in rows] == [("mean_flow", 1), ("flow_matching", 10)]
+    assert [(r["decoder"], r["steps"], r["runtime"]) for r in rows] == [
+        ("mean_flow", 1, "eager"), ("mean_flow", 1, "onnxruntime"),
+        ("flow_matching", 10, "eager"), ("flow_matching", 10, "onnxruntime")]
     assert all(r["plain_ms"] > 0 and r["trained_ms"] > 0 and r["delay"] == 4 and r["clock"] == "CPU time"
                for r in rows)
+    table = [line for line in cost_section(rows) if line.startswith("| FM K=10") or line.startswith("| MF K=1")]
+    assert [line.split(" | ")[2] for line in table] == ["eager", "eager", "onnxruntime", "onnxruntime"]
 
 
 def test_benchmark_names_the_rtc_weights_by_their_delay_distribution():

@@ -1,7 +1,8 @@
 """Compiled PyTorch paths: `torch.compile` of the whole deterministic sampler and of the network.
 
 `compile_sampler` compiles `export.ChunkSampler` (the graph `export_onnx` writes: normalisation, the K
-network calls unrolled, un-normalisation, squash) for fixed input shapes; on a CUDA device its mode
+network calls unrolled, un-normalisation, squash; with `rtc=True`, trained real-time chunking with the
+delay an input) for fixed input shapes; on a CUDA device its mode
 defaults to "reduce-overhead" (CUDA graphs: one launch per chunk), elsewhere to inductor's default.
 `compile_network` compiles the Action Expert in place for training (`train --compile`): weights,
 state_dict keys and checkpoints are unchanged.
@@ -14,7 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional
 import torch
 from torch import Tensor
 
-from .export import ChunkSampler, export_refusal
+from .export import ChunkSampler, export_refusal, rtc_refusal
 
 if TYPE_CHECKING:
     from .policy import ActionDecoderPolicy
@@ -36,28 +37,49 @@ def _mode(policy: "ActionDecoderPolicy", mode: Optional[str]) -> Optional[str]:
 
 
 def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None, steps: Optional[int] = None,
-                    mode: Optional[str] = None, backend: str = "inductor") -> Callable[..., Tensor]:
+                    mode: Optional[str] = None, backend: str = "inductor", rtc: bool = False) -> Callable[..., Tensor]:
     """fn(batch, noise [B, H, D]) → chunk [B, H, D] (env units): `predict_action_chunk(batch, noise=noise)`
     as one compiled graph. `batch` holds "state" and, where the policy uses them, "context" (+
     "context_mask") and "images". `mode`: torch.compile's (None: "reduce-overhead" on CUDA, else the
-    default); `backend`: torch.compile's. A new batch size or context length compiles once more."""
-    refusal = export_refusal(policy, sampler)
+    default); `backend`: torch.compile's. A new batch size or context length compiles once more.
+
+    `rtc=True` (checkpoints trained with `rtc_max_delay` M > 0): fn(batch, noise, prev_chunk=None, delay=0)
+    is `sample(batch, noise=noise, prev_chunk=prev_chunk, delay=delay, rtc_mode="trained").actions`, the
+    delay (0..M) an input of the graph, so every delay replays the same compiled graph."""
+    refusal = export_refusal(policy, sampler) or (rtc_refusal(policy, sampler) if rtc else None)
     if refusal:
         raise ValueError(refusal)
-    module = ChunkSampler(policy, sampler, steps).eval()
+    module = ChunkSampler(policy, sampler, steps, rtc=rtc).eval()
     mode = _mode(policy, mode) if backend == "inductor" else None
     compiled = torch.compile(module, mode=mode, backend=backend, fullgraph=True, dynamic=False)
+    max_delay = module.max_delay
 
     @torch.no_grad()
-    def sample(batch: Mapping[str, Any], noise: Tensor) -> Tensor:
+    def sample(batch: Mapping[str, Any], noise: Tensor, prev_chunk: Optional[Tensor] = None, delay: int = 0) -> Tensor:
         policy._check_noise(batch, noise)
         device = noise.device
         ctx, mask, images = batch.get("context"), batch.get("context_mask"), batch.get("images")
         if ctx is not None and mask is None:
             mask = torch.ones(ctx.shape[:2], dtype=torch.bool, device=device)
-        return compiled(batch["state"].to(device), noise, ctx, None if mask is None else mask.bool(), images)
+        args = (batch["state"].to(device), noise, ctx, None if mask is None else mask.bool(), images)
+        if not rtc:
+            if prev_chunk is not None or delay:
+                raise ValueError("prev_chunk: this compiled sampler has no real-time chunking; compile it with rtc=True "
+                                 "(a checkpoint trained with --rtc-max-delay)")
+            return compiled(*args)
+        b, _, dim = noise.shape
+        delay = policy._check_prev_chunk(batch, prev_chunk, delay)
+        if prev_chunk is None:
+            prev_chunk = noise.new_zeros(b, 0, dim)
+        if delay > max_delay:
+            raise ValueError(f"delay: {delay} exceeds rtc_max_delay={max_delay}, the longest prefix this checkpoint "
+                             f"was trained to continue")
+        committed = noise.new_zeros(b, max_delay, dim)                                       # [B, M, D] env units
+        rows = min(max_delay, prev_chunk.shape[1])
+        committed[:, :rows] = prev_chunk[:, :rows].to(committed)
+        return compiled(*args, committed, torch.full((b,), delay, dtype=torch.int64, device=device))
 
-    sample.sampler, sample.steps = module.sampler, module.steps
+    sample.sampler, sample.steps, sample.rtc_max_delay = module.sampler, module.steps, max_delay
     return sample
 
 

@@ -31,7 +31,7 @@ class EvalConfig:
     onnx: Optional[str] = None
     """Evaluate this exported policy (`action-decoder export`) with onnxruntime instead of a checkpoint: same layouts and noise."""
     compile: bool = False
-    """Sample with the torch.compile'd sampler (deterministic samplers only)."""
+    """Sample with the torch.compile'd sampler (deterministic samplers; with --rtc, trained RTC only)."""
     episodes: int = 20
     """Episodes per task."""
     sampler: Optional[Literal["ode", "sde", "euler"]] = None
@@ -99,7 +99,8 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
     float rounding of batched matmuls, ~1e-7). Without those keys the whole batch draws from
     `generator`. `images` [B, N_cam, 3, S, S] (as `envs.evaluate` passes them with a camera rig)
     condition a camera policy. `sample_fn(batch, noise)` (`compiled.compile_sampler`), when given,
-    samples each chunk from the noise `policy.sample` would draw. `observe` maps the env's states [B, 39]
+    samples each chunk from the noise `policy.sample` would draw (with `prev_chunks`, one compiled with
+    `rtc=True`: trained real-time chunking). `observe` maps the env's states [B, 39]
     to what the policy reads (default: as they are; LeRobot's agent position for a policy of
     `record --layout lerobot` data). `rtc_mode` goes to `policy.sample` with `prev_chunks` (real-time
     chunking; the rows each new chunk executes are those prev_chunks' length implies, H − L).
@@ -125,12 +126,15 @@ def make_policy_fn(policy: ActionDecoderPolicy, num_tasks: int, sampler: Optiona
                                  f"{None if episode_seeds is None else len(episode_seeds)} and "
                                  f"{None if plan_indices is None else len(plan_indices)}")
             gens = row_generators(base, episode_seeds, plan_indices, device)
-        if sample_fn is not None:
-            if prev_chunks is not None:
-                raise ValueError("--compile: the compiled sampler has no real-time chunking (prev_chunks); drop --rtc")
-            noise = randn_rows(len(states), (cfg.action_chunk_size, cfg.action_dim), gens, device)   # [B, H, D]
-            return sample_fn(batch, noise).float().cpu().numpy()
         prev = None if prev_chunks is None else torch.from_numpy(np.asarray(prev_chunks, dtype=np.float32)).to(device)
+        if sample_fn is not None:
+            noise = randn_rows(len(states), (cfg.action_chunk_size, cfg.action_dim), gens, device)   # [B, H, D]
+            if prev is None:
+                return sample_fn(batch, noise).float().cpu().numpy()
+            if not getattr(sample_fn, "rtc_max_delay", 0):
+                raise ValueError("--compile: this compiled sampler has no real-time chunking (prev_chunks); compile it "
+                                 "with rtc=True or drop --rtc")
+            return sample_fn(batch, noise, prev_chunk=prev, delay=delay).float().cpu().numpy()
         out = policy.sample(batch, sampler=sampler, steps=steps, return_logprob=False, generator=gens,
                             prev_chunk=prev, delay=delay, rtc_mode=rtc_mode)             # prev [B, L, D]
         return out.actions.float().cpu().numpy()                                            # [B, H, D]
@@ -231,9 +235,10 @@ def run_eval(cfg: EvalConfig) -> dict:
         from .compiled import check_compile, compile_sampler
 
         check_compile()
-        if cfg.rtc:
-            raise ValueError("--compile: the compiled sampler has no real-time chunking; drop --rtc")
-        sample_fn = compile_sampler(policy, cfg.sampler, steps)
+        if cfg.rtc and rtc_mode != "trained":
+            raise ValueError("--compile: the compiled sampler runs trained real-time chunking only (a checkpoint "
+                             f"trained with --rtc-max-delay >= --delay); this one resolves to {rtc_mode!r}: drop --compile")
+        sample_fn = compile_sampler(policy, cfg.sampler, steps, rtc=bool(cfg.rtc))
     lerobot = policy.config.extra.get("observation_layout") == "lerobot"
     if lerobot:
         from .envs.lerobot_view import agent_pos

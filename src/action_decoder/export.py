@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 METADATA_KEY = "action_decoder"
 STATE, NOISE, CONTEXT, CONTEXT_MASK, IMAGES, ACTION = (
     "observation.state", "noise", "context", "context_mask", "observation.images", "action")
+COMMITTED, DELAY = "committed_actions", "delay"          # the trained-RTC graph's inputs (`ChunkSampler(rtc=True)`)
 OPSET = 18
 EXPORTERS = ("dynamo", "torchscript")
 
@@ -102,16 +103,38 @@ def export_refusal(policy: "ActionDecoderPolicy", sampler: Optional[str]) -> Opt
     return None
 
 
+def rtc_refusal(policy: "ActionDecoderPolicy", sampler: Optional[str]) -> Optional[str]:
+    """The one-line reason this policy/sampler has no trained real-time chunking graph, or None."""
+    cfg = policy.config
+    chosen = policy.resolve_sampler(sampler)
+    if not cfg.rtc_max_delay:
+        return ("rtc: the graph feeds committed actions to a checkpoint trained with real-time chunking "
+                "(train --rtc-max-delay N); this one has rtc_max_delay=0")
+    if not (chosen == "ode" or (chosen == "euler" and cfg.decoder_type == "flow_matching")):
+        return (f"rtc: the committed prefix is fed to the ODE sampler ('ode'"
+                f"{', or euler' if cfg.decoder_type == 'flow_matching' else ''}), got sampler={chosen!r}")
+    return None
+
+
 class ChunkSampler(nn.Module):
     """forward(state [B, S] env units, noise [B, H, D], context [B, L, C]?, context_mask [B, L]?,
-    images [B, N_cam, 3, S, S] uint8?) → actions [B, H, D] env units: `predict_action_chunk` for that
-    noise, with the sampler's K network calls unrolled."""
+    images [B, N_cam, 3, S, S] uint8?, committed [B, M, D]?, delay [B]?) → actions [B, H, D] env units:
+    `predict_action_chunk` for that noise, with the sampler's K network calls unrolled.
 
-    def __init__(self, policy: "ActionDecoderPolicy", sampler: Optional[str] = None, steps: Optional[int] = None):
+    With `rtc=True` (checkpoints trained with `rtc_max_delay` M > 0) the graph is trained real-time
+    chunking (`flows/rtc_trained.py`): row b's first delay[b] ∈ 0..M actions are committed[b]'s (env
+    units), fed in clean at t = 1 on every step and returned exactly; committed's rows past delay[b]
+    are ignored, and delay[b] = 0 is the plain chunk. It is `sample(prev_chunk=committed,
+    delay=d, rtc_mode="trained")` with the delay an input, so one graph serves every delay."""
+
+    def __init__(self, policy: "ActionDecoderPolicy", sampler: Optional[str] = None, steps: Optional[int] = None,
+                 rtc: bool = False):
         super().__init__()
-        refusal = export_refusal(policy, sampler)
+        refusal = export_refusal(policy, sampler) or (rtc_refusal(policy, sampler) if rtc else None)
         if refusal:
             raise ValueError(refusal)
+        self.rtc = bool(rtc)
+        self.max_delay = policy.config.rtc_max_delay if rtc else 0
         self.policy = policy
         cfg = policy.config
         self.sampler = policy.resolve_sampler(sampler)
@@ -146,12 +169,15 @@ class ChunkSampler(nn.Module):
         return prefix
 
     def forward(self, state: Tensor, noise: Tensor, context: Optional[Tensor] = None,
-                context_mask: Optional[Tensor] = None, images: Optional[Tensor] = None) -> Tensor:
+                context_mask: Optional[Tensor] = None, images: Optional[Tensor] = None,
+                committed: Optional[Tensor] = None, delay: Optional[Tensor] = None) -> Tensor:
         policy, cfg = self.policy, self.policy.config
         raw = state.float()                                                           # [B, S]
         s = network_state(cfg.state_layout, policy.normalizers["state"].normalize(raw), raw)
         prefix = self._prefix(context, context_mask, images)
         x = noise.float()                                                             # [B, H, D]
+        if self.rtc:
+            return self._trained_rtc(s, prefix, x, committed, delay)
 
         def const(v: float) -> Tensor:                       # a constant of the graph, on the chunk's device
             return torch.tensor(v, device=x.device)
@@ -174,15 +200,41 @@ class ChunkSampler(nn.Module):
                     x = x + dt * self._velocity(net(x, t, t), x, t)
         return policy._env_actions(x)
 
-    def _velocity(self, out: Tensor, x: Tensor, t: float) -> Tensor:
+    def _trained_rtc(self, s: Tensor, prefix: Optional[Prefix], x: Tensor, committed: Tensor,
+                     delay: Tensor) -> Tensor:
+        """The chunk with row b's first delay[b] rows committed (`sample_ode_prefix`, `sample_meanflow_prefix`
+        with the kept rows a per-row mask instead of a slice)."""
+        policy, cfg = self.policy, self.policy.config
+        b, horizon, dim = x.shape
+        keep = torch.arange(horizon, device=x.device)[None, :] < delay.to(x.device)[:, None]     # [B, H] bool
+        pad = torch.zeros(b, horizon - committed.shape[1], dim, device=x.device)
+        env = torch.cat([committed.float(), pad], 1)                                  # [B, H, D] env units
+        if cfg.action_squash:        # back through tanh (atanh spelt out: the TorchScript exporter lacks it)
+            inside = env.clamp(-1 + 1e-6, 1 - 1e-6)
+            clean = 0.5 * torch.log((1 + inside) / (1 - inside))
+        else:
+            clean = env
+        rows = keep[..., None]                                                        # [B, H, 1]
+        clean = policy.normalizers["actions"].normalize(clean)                        # [B, H, D]
+        for t, r, dt in self.times:
+            r = r if self.kind == "meanflow" else t
+            x = torch.where(rows, clean, x)               # the kept rows enter every step clean, whatever moved them
+            # Kept rows at t = r = 1 (`clean_rows`): the time embeddings stay constants of the graph.
+            out = policy.model(x, torch.tensor(t, device=x.device), torch.tensor(r, device=x.device), s,
+                               prefix=prefix, clean_rows=keep).float()
+            x = x + dt * self._velocity(out, x, t)
+        return torch.where(rows, env, policy._env_actions(x))                          # the committed rows exact
+
+    def _velocity(self, out: Tensor, x: Tensor, t: float | Tensor) -> Tensor:
         """The head's output as a velocity, as `ActionDecoderPolicy._flow_net` makes it."""
         if self.policy.config.flow_prediction == "velocity":
             return out
-        return velocity_from_sample(x, torch.tensor(t, device=x.device), out)
+        return velocity_from_sample(x, t if isinstance(t, Tensor) else torch.tensor(t, device=x.device), out)
 
 
-def _example_inputs(policy: "ActionDecoderPolicy", batch: int, context_length: Optional[int]) -> dict:
-    """Inputs (name → zero tensor) the exported graph takes, in its order."""
+def _example_inputs(policy: "ActionDecoderPolicy", batch: int, context_length: Optional[int],
+                    rtc: bool = False) -> dict:
+    """Inputs (name → example tensor) the exported graph takes, in its order."""
     cfg = policy.config
     inputs = {STATE: torch.zeros(batch, cfg.state_dim), NOISE: torch.zeros(batch, cfg.action_chunk_size, cfg.action_dim)}
     if cfg.context_dim is not None and context_length:
@@ -190,6 +242,9 @@ def _example_inputs(policy: "ActionDecoderPolicy", batch: int, context_length: O
         inputs[CONTEXT_MASK] = torch.ones(batch, context_length, dtype=torch.bool)
     if cfg.uses_cameras:
         inputs[IMAGES] = torch.zeros(batch, len(cfg.cameras), 3, cfg.image_size, cfg.image_size, dtype=torch.uint8)
+    if rtc:
+        inputs[COMMITTED] = torch.zeros(batch, cfg.rtc_max_delay, cfg.action_dim)
+        inputs[DELAY] = torch.full((batch,), cfg.rtc_max_delay, dtype=torch.int64)
     return inputs
 
 
@@ -202,7 +257,7 @@ def default_context_length(policy: "ActionDecoderPolicy") -> Optional[int]:
 
 def export_onnx(policy: "ActionDecoderPolicy", path: str | Path, steps: Optional[int] = None, batch_size: int = 1,
                 sampler: Optional[str] = None, context_length: Optional[int] = -1,
-                exporter: str = "torchscript") -> Path:
+                exporter: str = "torchscript", rtc: bool = False) -> Path:
     """Write the policy's deterministic sampler as one ONNX graph (see `ChunkSampler`) to `path`.
 
     `steps`: K (None: the checkpoint's `num_inference_timesteps`); `batch_size`: rows per call, fixed
@@ -212,6 +267,8 @@ def export_onnx(policy: "ActionDecoderPolicy", path: str | Path, steps: Optional
     (`torch.onnx.export(dynamo=True)`, slower to export). Inputs are named `observation.state` [B, S],
     `noise` [B, H, D], then `context` [B, L, C] with `context_mask` [B, L] (bool) and
     `observation.images` [B, N_cam, 3, S, S] (uint8) where they apply; the output `action` [B, H, D].
+    `rtc`: trained real-time chunking (`ChunkSampler`; checkpoints trained with `rtc_max_delay` M): two
+    more inputs, `committed_actions` [B, M, D] (env units) and `delay` [B] (int64, 0..M).
     """
     from . import __version__
 
@@ -230,8 +287,10 @@ def export_onnx(policy: "ActionDecoderPolicy", path: str | Path, steps: Optional
     path = Path(path)
     if path.suffix != ".onnx":
         raise ValueError(f"path: expected a file name ending in .onnx, got {str(path)!r}")
-    module = ChunkSampler(policy, sampler, steps).eval()
-    inputs = _example_inputs(policy, batch_size or 2, context_length)
+    if not isinstance(rtc, bool):
+        raise ValueError(f"rtc: expected True or False, got {rtc!r}")
+    module = ChunkSampler(policy, sampler, steps, rtc=rtc).eval()
+    inputs = _example_inputs(policy, batch_size or 2, context_length, rtc)
     names = list(inputs)
     path.parent.mkdir(parents=True, exist_ok=True)
     was_training, attn = policy.training, policy.model.attn_implementation
@@ -260,7 +319,7 @@ def export_onnx(policy: "ActionDecoderPolicy", path: str | Path, steps: Optional
         policy.train(was_training)
     meta = {"format": 1, "library_version": __version__, "exporter": exporter,
             "decoder_type": cfg.decoder_type, "sampler": module.sampler, "steps": module.steps,
-            "batch_size": batch_size, "inputs": {n: [None if (not batch_size and i == 0) else d
+            "batch_size": batch_size, "rtc_max_delay": module.max_delay, "inputs": {n: [None if (not batch_size and i == 0) else d
                                                      for i, d in enumerate(t.shape)] for n, t in inputs.items()},
             "input_dtypes": {n: str(t.dtype).removeprefix("torch.") for n, t in inputs.items()},
             "output": ACTION, "chunk": [cfg.action_chunk_size, cfg.action_dim], "config": cfg.to_dict()}
@@ -277,7 +336,8 @@ class _Named(nn.Module):
 
     def forward(self, *args: Tensor) -> Tensor:
         got = dict(zip(self.names, args))
-        return self.sampler(got[STATE], got[NOISE], got.get(CONTEXT), got.get(CONTEXT_MASK), got.get(IMAGES))
+        return self.sampler(got[STATE], got[NOISE], got.get(CONTEXT), got.get(CONTEXT_MASK), got.get(IMAGES),
+                            got.get(COMMITTED), got.get(DELAY))
 
 
 def _write_metadata(path: Path, meta: dict) -> None:
@@ -308,6 +368,8 @@ class ExportConfig:
     """Context tokens per row (-1: 1 for a multi-task policy, else no context input; 0: none)."""
     exporter: Literal["torchscript", "dynamo"] = "torchscript"
     """torchscript or dynamo (torch.onnx.export(dynamo=True))."""
+    rtc: bool = False
+    """Take committed actions and a delay as inputs (trained real-time chunking; needs train --rtc-max-delay)."""
 
 
 def run_export(cfg: ExportConfig) -> Path:
@@ -321,11 +383,12 @@ def run_export(cfg: ExportConfig) -> Path:
     if cfg.context_length < -1:
         raise ValueError(f"--context-length: expected a number of tokens >= 0 (or -1: automatic), got {cfg.context_length}")
     policy = ActionDecoderPolicy.from_pretrained(cfg.checkpoint)
-    refusal = export_refusal(policy, cfg.sampler)
+    refusal = export_refusal(policy, cfg.sampler) or (rtc_refusal(policy, cfg.sampler) if cfg.rtc else None)
     if refusal:
         raise ValueError(refusal)
     path = export_onnx(policy, cfg.output, steps=cfg.steps or None, batch_size=cfg.batch_size, sampler=cfg.sampler,
-                       context_length=cfg.context_length if cfg.context_length != 0 else None, exporter=cfg.exporter)
+                       context_length=cfg.context_length if cfg.context_length != 0 else None, exporter=cfg.exporter,
+                       rtc=cfg.rtc)
     err = check_export(policy, path)
     meta = json.loads(_read_metadata(path))
     print(f"wrote {path}: {meta['decoder_type']} sampler={meta['sampler']} K={meta['steps']} inputs "
@@ -342,7 +405,8 @@ def _read_metadata(path: Path) -> str:
 
 
 def check_export(policy: "ActionDecoderPolicy", path: str | Path, seed: int = 0) -> float:
-    """max |exported − `predict_action_chunk`| (env units) on a random state, noise and inputs."""
+    """max |exported − `predict_action_chunk`| (env units) on a random state, noise and inputs (a trained-RTC
+    graph: against `sample(prev_chunk=..., delay=..., rtc_mode="trained")` row by row)."""
     from .runtime import OnnxPolicy
 
     runner = OnnxPolicy(path)
@@ -352,7 +416,9 @@ def check_export(policy: "ActionDecoderPolicy", path: str | Path, seed: int = 0)
     inputs = {}
     for name, shape in meta["inputs"].items():
         shape = [b] + shape[1:]
-        if meta["input_dtypes"][name] == "uint8":
+        if name == DELAY:                              # row i commits (M − i) mod (M + 1) actions: row 0 all M
+            inputs[name] = (meta["rtc_max_delay"] - torch.arange(b)) % (meta["rtc_max_delay"] + 1)
+        elif meta["input_dtypes"][name] == "uint8":
             inputs[name] = torch.randint(0, 256, shape, generator=gen, dtype=torch.uint8)
         elif meta["input_dtypes"][name] == "bool":
             inputs[name] = torch.ones(shape, dtype=torch.bool)
@@ -362,10 +428,22 @@ def check_export(policy: "ActionDecoderPolicy", path: str | Path, seed: int = 0)
     inputs[STATE] = stats.unnormalize(inputs[STATE])          # a state of the data's scale
     batch = {"state": inputs[STATE], "context": inputs.get(CONTEXT), "context_mask": inputs.get(CONTEXT_MASK),
              "images": inputs.get(IMAGES)}
-    want = policy.predict_action_chunk({k: v for k, v in batch.items() if v is not None}, sampler=meta["sampler"],
-                                       steps=meta["steps"], noise=inputs[NOISE], return_logprob=False)
+    batch = {k: v for k, v in batch.items() if v is not None}
+    rtc = {}
+    if DELAY in inputs:
+        committed = policy._env_actions(inputs[COMMITTED])                 # actions a chunk could have planned
+        inputs[COMMITTED] = committed
+        rtc = {"committed": committed.numpy(), "delay": inputs[DELAY].numpy()}
+        with torch.no_grad():
+            want = torch.cat([policy.sample({k: v[i:i + 1] for k, v in batch.items()}, sampler=meta["sampler"],
+                                            steps=meta["steps"], noise=inputs[NOISE][i:i + 1],
+                                            prev_chunk=committed[i:i + 1], delay=int(inputs[DELAY][i]),
+                                            rtc_mode="trained").actions for i in range(b)])
+    else:
+        want = policy.predict_action_chunk(batch, sampler=meta["sampler"], steps=meta["steps"], noise=inputs[NOISE],
+                                           return_logprob=False)
     got = runner.predict_action_chunk(inputs[STATE].numpy(), inputs[NOISE].numpy(),
                                       context=None if CONTEXT not in inputs else inputs[CONTEXT].numpy(),
                                       context_mask=None if CONTEXT_MASK not in inputs else inputs[CONTEXT_MASK].numpy(),
-                                      images=None if IMAGES not in inputs else inputs[IMAGES].numpy())
-    return float((torch.from_numpy(got) - want).abs().max())
+                                      images=None if IMAGES not in inputs else inputs[IMAGES].numpy(), **rtc)
+    return float((torch.from_numpy(got) - want.detach()).abs().max())

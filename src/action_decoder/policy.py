@@ -633,14 +633,15 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 
     def export_onnx(self, path: str | Path, steps: Optional[int] = None, batch_size: int = 1,
                     sampler: Optional[str] = None, context_length: Optional[int] = -1,
-                    exporter: str = "torchscript") -> Path:
+                    exporter: str = "torchscript", rtc: bool = False) -> Path:
         """Write the deterministic sampler (normalisation, the K steps unrolled, un-normalisation, squash) as
-        one ONNX graph `path` that maps `observation.state` and `noise` (+ context, camera frames) to the
-        chunk in env units; run it with `action_decoder.runtime.OnnxPolicy`. Arguments: `export.export_onnx`."""
+        one ONNX graph `path` that maps `observation.state` and `noise` (+ context, camera frames; with `rtc`,
+        the committed actions and the delay) to the chunk in env units; run it with
+        `action_decoder.runtime.OnnxPolicy`. Arguments: `export.export_onnx`."""
         from .export import export_onnx
 
         return export_onnx(self, path, steps=steps, batch_size=batch_size, sampler=sampler,
-                           context_length=context_length, exporter=exporter)
+                           context_length=context_length, exporter=exporter, rtc=rtc)
 
     # ------------------------------------------------------------------ persistence
     def save_pretrained(self, save_directory: str | Path, *, config: Any = None, repo_id: Optional[str] = None,

@@ -20,6 +20,7 @@ import numpy as np
 
 METADATA_KEY = "action_decoder"
 STATE, NOISE, CONTEXT, CONTEXT_MASK, IMAGES = "observation.state", "noise", "context", "context_mask", "observation.images"
+COMMITTED, DELAY = "committed_actions", "delay"
 
 
 def _ort_api(name: str):
@@ -83,6 +84,7 @@ class OnnxPolicy:
         self.chunk_shape = tuple(self.metadata["chunk"])                 # (H, D)
         self.batch_size = int(self.metadata["batch_size"])               # 0: any
         self.input_names = [i.name for i in self.runner.get_inputs()]
+        self.rtc_max_delay = int(self.metadata.get("rtc_max_delay", 0)) if DELAY in self.input_names else 0
 
     @property
     def state_dim(self) -> int:
@@ -103,12 +105,18 @@ class OnnxPolicy:
         return arr
 
     def predict_action_chunk(self, state, noise=None, context=None, context_mask=None, images=None,
-                             seed: Optional[int] = None, rng: Optional[np.random.Generator] = None) -> np.ndarray:
+                             seed: Optional[int] = None, rng: Optional[np.random.Generator] = None,
+                             committed=None, delay=0) -> np.ndarray:
         """A chunk [B, H, D] (float32, env units) for `state` [B, S] (env units).
 
         `noise` [B, H, D]: the initial noise (None: standard normal draws from `rng`, else from
         `np.random.default_rng(seed)`); `context` [B, L, C] with `context_mask` [B, L] (bool, None:
-        all valid) and `images` [B, N_cam, 3, S, S] (uint8) where the file takes them."""
+        all valid) and `images` [B, N_cam, 3, S, S] (uint8) where the file takes them.
+
+        A file exported with `--rtc` (trained real-time chunking, `self.rtc_max_delay` M > 0) also takes
+        `committed` [B, L, D] (env units): the previous chunk's actions from this chunk's first step on,
+        and `delay` d (an int, or one per row [B]) in 0..min(L, M): the chunk's first d actions are
+        committed's, exactly, and the rest continue them. Without `committed` the chunk is a plain one."""
         state = np.asarray(state)
         if state.ndim != 2:
             raise ValueError(f"{STATE}: expected shape [B, {self.state_dim}], got {list(state.shape)}")
@@ -138,4 +146,35 @@ class OnnxPolicy:
             feeds[IMAGES] = self._check(IMAGES, images, np.uint8, b)
         elif images is not None:
             raise ValueError(f"{IMAGES}: this file takes no camera frames (inputs {self.input_names})")
+        if DELAY in self.input_names:
+            feeds[COMMITTED], feeds[DELAY] = self._committed(committed, delay, b)
+        elif committed is not None or (np.ndim(delay) or delay):
+            raise ValueError(f"committed: this file has no real-time chunking inputs (inputs {self.input_names}); "
+                             f"export a checkpoint trained with --rtc-max-delay with --rtc")
         return self.runner.run(None, feeds)[0]
+
+    def _committed(self, committed, delay, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """(committed actions [B, M, D] float32, delays [B] int64) for the graph, or one ValueError line."""
+        m, (h, d) = self.rtc_max_delay, self.chunk_shape
+        delays = np.asarray(delay)
+        if delays.dtype.kind not in "iu" or delays.ndim > 1 or (delays.ndim == 1 and len(delays) != b):
+            raise ValueError(f"{DELAY}: expected an integer or {b} integers (one per row) in 0..{m}, got {delay!r}")
+        delays = np.broadcast_to(delays, (b,)).astype(np.int64)
+        if committed is None:
+            if delays.any():
+                raise ValueError(f"{DELAY}: a delay of {int(delays.max())} commits actions, and committed is missing "
+                                 f"(expected the previous chunk's actions [{b}, L, {d}])")
+            return np.zeros((b, m, d), dtype=np.float32), delays
+        arr = np.asarray(committed)
+        if arr.dtype.kind != "f" or arr.ndim != 3 or arr.shape[0] != b or arr.shape[2] != d or not 1 <= arr.shape[1] <= h:
+            raise ValueError(f"committed: expected float32 values of shape [{b}, L <= {h}, {d}] (the previous chunk's "
+                             f"actions from this chunk's first step on), got dtype {arr.dtype}, shape {list(arr.shape)}")
+        if delays.min() < 0 or delays.max() > min(m, arr.shape[1]):
+            raise ValueError(f"{DELAY}: expected values in 0..{min(m, arr.shape[1])} (this file's rtc_max_delay={m}, "
+                             f"committed's {arr.shape[1]} rows), got {delays.tolist()}")
+        arr = np.ascontiguousarray(arr[:, :m], dtype=np.float32)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"committed: contains NaN or Inf (shape {list(arr.shape)})")
+        if arr.shape[1] < m:
+            arr = np.concatenate([arr, np.zeros((b, m - arr.shape[1], d), dtype=np.float32)], 1)
+        return arr, delays

@@ -31,7 +31,7 @@ def default_intermediate_size(hidden_size: int) -> int:
 
 
 class ActionExpert(nn.Module):
-    """forward(x, t, r, state, ctrl_freq=None, prefix=None) -> [B, H, action_dim].
+    """forward(x, t, r, state, ctrl_freq=None, prefix=None, clean_rows=None) -> [B, H, action_dim].
 
     Set `attn_implementation` to "auto" (SDPA; explicit softmax under forward-mode AD),
     "sdpa" or "eager" (explicit softmax always).
@@ -105,7 +105,8 @@ class ActionExpert(nn.Module):
         return self.conditioning(context, context_mask, vlm_key_values, attention_mask, tokens)
 
     def forward(self, x: Tensor, t: Tensor, r: Tensor, state: Tensor,
-                ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None) -> Tensor:
+                ctrl_freq: Optional[Tensor] = None, prefix: Optional[Prefix] = None,
+                clean_rows: Optional[Tensor] = None) -> Tensor:
         """x [B, H, action_dim] noisy actions; t, r [B] in [0, 1] (r = t outside MeanFlow), or per
         action token [B, H] (training-time real-time chunking: the committed rows at t = r = 1);
         state [B, state_input_dim] (normalised, with the layout's features), or [B, n, state_input_dim]
@@ -116,16 +117,30 @@ class ActionExpert(nn.Module):
         still being generated), and each action token whose own time differs from it gets the
         difference of the two embeddings added; with all times of a sample equal this is the
         per-sample path exactly.
+
+        `clean_rows` [B, H] bool, with t and r per sample: the marked action tokens are at t = r = 1
+        (a committed prefix) and the others at t and r, r ≤ 1 — the per-token path for those times,
+        with only three embeddings per sample (t, r and 1), which a graph with constant times folds away.
         Returns [B, H, action_dim] in x's dtype."""
         b, horizon, _ = self._check(x, state, prefix)
         dtype = self.head.weight.dtype
         t = self._time(t, b, horizon, x.device, "t")
         r = self._time(r, b, horizon, x.device, "r")
+        if clean_rows is not None and (t.dim() != 1 or r.dim() != 1 or clean_rows.dtype != torch.bool
+                                       or tuple(clean_rows.shape) != (b, horizon)):
+            raise ValueError(f"clean_rows: expected a bool tensor [{b}, {horizon}] with t and r per sample [{b}], got "
+                             f"{clean_rows.dtype} {list(clean_rows.shape)} with t {list(t.shape)}, r {list(r.shape)}")
         if ctrl_freq is None:
             ctrl_freq = torch.full((b,), self.config.default_ctrl_freq, device=x.device)
         ctrl_freq = self._per_sample(ctrl_freq, b, x.device, "ctrl_freq")
         actions = self.action_in(x.to(dtype))                                     # [B, H, hidden]
-        if t.dim() == 1 and r.dim() == 1:
+        if clean_rows is not None:   # the clean tokens' offset embed(1) − embed(earliest), as _token_times
+            one = torch.ones_like(t)
+            emb_t, emb_r = self.t_embed(torch.cat([t, one])), self.r_embed(torch.cat([r, one]))   # [2B, hidden] each
+            t_tok, r_tok = emb_t[:b], emb_r[:b]
+            shift = emb_t[b:] + emb_r[b:] - t_tok - r_tok                         # [B, hidden]
+            actions = actions + clean_rows[..., None].to(shift.dtype) * shift[:, None]
+        elif t.dim() == 1 and r.dim() == 1:
             t_tok, r_tok = self.t_embed(t), self.r_embed(r)                       # [B, hidden] each
         else:
             t_tok, r_tok, offsets = self._token_times(t, r, b, horizon)
