@@ -8,7 +8,8 @@ Two checkpoints of the default architecture (hidden 96, 3 layers, chunk H = 16) 
 the LeRobot-written fixture tests/data/lerobot/v30_toy (6-d state, 3-d action, two tasks): MF-1
 (mean_flow, 1 step, trained with --rtc-max-delay 4: real-time chunking "trained") and FM-10
 (flow_matching, 10 Euler steps: "guided"). Each is served (`action-decoder serve`, a subprocess)
-with real-time chunking on and off, and LeRobot's `RobotClient` drives the plugin's simulated
+with real-time chunking on and off (and with `--compile`: MF-1 with trained RTC, FM-10 without
+RTC, compiled at the first observation), and LeRobot's `RobotClient` drives the plugin's simulated
 robot (`--robot.type=action_decoder_sim`) at --fps for --seconds, with `actions_per_chunk` 12,
 `chunk_size_threshold` 0.5 and `aggregate_fn_name` latest_only (RTC on and off) or
 weighted_average (the client's default; RTC on).
@@ -83,9 +84,10 @@ def serve_subprocess(checkpoint, log, *extra: str, timeout: float = 120.0):
 
 def drive_client(port: int, checkpoint, workdir, actions: int, seconds: float, fps: int = 30,
                  actions_per_chunk: int = 12, threshold: float = 0.5, aggregate: str = "latest_only",
-                 state_dim: int = 6, action_dim: int = 3):
+                 state_dim: int = 6, action_dim: int = 3, warmup: float = 0.0):
     """LeRobot's RobotClient with the simulated robot until it executed `actions` actions or `seconds`
-    passed. Returns (robot, arrivals): per received chunk, (the queue {timestep: action} and the last
+    passed (counted from the first chunk's arrival when `warmup` > 0, waiting for it at most `warmup`
+    seconds: a compiling server's first chunk). Returns (robot, arrivals): per received chunk, (the queue {timestep: action} and the last
     executed timestep just before the client merged it, the chunk's TimedActions)."""
     old = os.getcwd()
     os.chdir(workdir)                                 # LeRobot's loggers write ./logs/
@@ -117,6 +119,9 @@ def drive_client(port: int, checkpoint, workdir, actions: int, seconds: float, f
         control = threading.Thread(target=client.control_loop, kwargs={"task": TASK}, daemon=True)
         receiver.start()
         control.start()
+        first = time.time() + warmup
+        while warmup and not arrivals and time.time() < first:
+            time.sleep(0.02)
         deadline = time.time() + seconds
         while len(client.robot.executed) < actions and time.time() < deadline:
             time.sleep(0.02)
@@ -149,6 +154,9 @@ def arrival_stats(arrivals, records: list) -> dict:
     return {"chunks_received": len(arrivals), "queued_median": med(queued), "queued_min": min(queued, default=0),
             "dropped_median": med(dropped), "merged_median": med(merged), "appended_median": med(appended),
             "gap_committed": mean(committed_gap), "gap_free": mean(free_gap)}
+
+
+COMPILE_S = 120.0    # the longest a --compile arm's client waits for its first chunk (the compiler's)
 
 
 def server_stats(records: list) -> dict:
@@ -184,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=int, default=30, help="the client's control frequency in Hz (default 30)")
     parser.add_argument("--train-steps", type=int, default=200, help="training steps per checkpoint (default 200)")
     parser.add_argument("--tiny", action="store_true", help="tiny networks (smoke run)")
+    parser.add_argument("--no-compile", action="store_true", help="leave out the --compile arms")
     parser.add_argument("--out", default=None, help="directory of the runs and serve.json (default: a temporary "
                         "directory); runs already there are served again")
     args = parser.parse_args(argv)
@@ -192,26 +201,32 @@ def main(argv: list[str] | None = None) -> int:
     ckpts = train_checkpoints(work, args.train_steps, args.tiny)
     rows = []
     for name, ckpt in ckpts.items():
-        for rtc, aggregate in ((True, "latest_only"), (False, "latest_only"), (True, "weighted_average")):
-            log = work / f"{name}_{'rtc' if rtc else 'plain'}_{aggregate}.jsonl"
+        # (RTC, client aggregate, --compile): compiled with RTC where the checkpoint has trained RTC (MF-1), else off
+        arms = [(True, "latest_only", False), (False, "latest_only", False), (True, "weighted_average", False)]
+        arms += [] if args.no_compile else [(name == "MF-1", "latest_only", True)]
+        for rtc, aggregate, compiled in arms:
+            log = work / f"{name}_{'rtc' if rtc else 'plain'}_{aggregate}{'_compiled' if compiled else ''}.jsonl"
             log.unlink(missing_ok=True)
-            with serve_subprocess(ckpt, log, "--fps", str(args.fps), *([] if rtc else ["--no-rtc"])) as (port, _):
+            extra = [*([] if rtc else ["--no-rtc"]), *(["--compile"] if compiled else [])]
+            with serve_subprocess(ckpt, log, "--fps", str(args.fps), *extra) as (port, _):
                 robot, arrivals = drive_client(port, ckpt, work, actions=int(args.seconds * args.fps) * 10,
-                                               seconds=args.seconds, fps=args.fps, aggregate=aggregate)
+                                               seconds=args.seconds, fps=args.fps, aggregate=aggregate,
+                                               warmup=COMPILE_S if compiled else 0.0)
             records = [json.loads(line) for line in log.read_text().splitlines()]
-            rows.append({"checkpoint": name, "rtc": rtc, "aggregate": aggregate, "executed": len(robot.executed),
-                         **server_stats(records), **arrival_stats(arrivals, records)})
+            rows.append({"checkpoint": name, "rtc": rtc, "aggregate": aggregate, "compiled": compiled,
+                         "executed": len(robot.executed), **server_stats(records), **arrival_stats(arrivals, records)})
             print(json.dumps(rows[-1]), flush=True)
     meta = {"date": date.today().isoformat(), "machine": f"{os.cpu_count()}-core {platform.machine()} CPU, "
             f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}", "python": platform.python_version(),
             "command": "python -m benchmarks serve " + " ".join(argv if argv is not None else sys.argv[1:])}
     (work / "serve.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    print(f"| checkpoint | RTC | client aggregate | chunks | actions executed in {args.seconds:g} s | compute ms "
+    print(f"| checkpoint | sampler | RTC | client aggregate | chunks | actions executed in {args.seconds:g} s | compute ms "
           "(median / p90) | sampling ms | delay (steps) | committed | queued at arrival (median / min) | dropped | "
           "merged | appended | gap, committed rows | gap, other merged rows |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['checkpoint']} | {', '.join(r['rtc_modes']) or 'off'} | {r['aggregate']} | {r['chunks_served']} | "
+        print(f"| {r['checkpoint']} | {'compiled' if r.get('compiled') else 'eager'} | {', '.join(r['rtc_modes']) or 'off'} "
+              f"| {r['aggregate']} | {r['chunks_served']} | "
               f"{r['executed']} | {r['compute_ms_median']:.1f} / {r['compute_ms_p90']:.1f} | "
               f"{r['sample_ms_median']:.1f} | {r['delay_median']:g} | {r['committed_median']:g} | "
               f"{r['queued_median']:g} / {r['queued_min']} | {r['dropped_median']:g} | {r['merged_median']:g} | "

@@ -14,8 +14,8 @@
 # (e) reload each checkpoint with LeRobot's `from_pretrained` and run `select_action`; MeanFlow
 # again with 2 data-parallel processes (torchrun → accelerate, gloo on CPU);
 # (f) the plugin's unit tests with LeRobot installed; (i) `action-decoder serve` on loopback with
-# LeRobot's own RobotClient and a simulated robot (tests/test_serve_lerobot.py: MF-1 and FM-10 chunks,
-# real-time chunking; about a minute); closed loop on LeRobot's Meta-World env:
+# LeRobot's own RobotClient and a simulated robot (tests/test_serve_lerobot.py: MF-1 (eager and compiled) and FM-10 chunks,
+# real-time chunking; about two minutes); closed loop on LeRobot's Meta-World env:
 # (g) a state policy trained by `action-decoder train` on `record --layout lerobot` data, converted
 # (`action-decoder convert --to lerobot`) and evaluated by `lerobot-eval --env.type=metaworld`,
 # within 10 points of `action-decoder eval` on the same task and episode count; (h) a camera

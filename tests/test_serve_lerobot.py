@@ -66,12 +66,14 @@ def instructions_error(port: int, **spec_over) -> str:
     return ""
 
 
-@pytest.mark.parametrize("name, rtc_mode", [("MF-1", "trained"), ("FM-10", "guided")])
-def test_robot_client_receives_timed_chunks_with_real_time_chunking(checkpoints, name, rtc_mode, tmp_path):
+@pytest.mark.parametrize("name, rtc_mode, extra", [("MF-1", "trained", ()), ("FM-10", "guided", ()),
+                                                   ("MF-1", "trained", ("--compile",))],
+                         ids=["MF-1", "FM-10", "MF-1-compiled"])
+def test_robot_client_receives_timed_chunks_with_real_time_chunking(checkpoints, name, rtc_mode, extra, tmp_path):
     ckpt = checkpoints[name]
     log = tmp_path / "chunks.jsonl"
-    with serve_subprocess(ckpt, log, timeout=SECONDS) as (port, server):
-        if name == "MF-1":       # instructions the server cannot follow: one line each, the client learns why
+    with serve_subprocess(ckpt, log, *extra, timeout=SECONDS) as (port, server):
+        if name == "MF-1" and not extra:   # instructions the server cannot follow: one line each, the client learns why
             assert "policy_type" in instructions_error(port, policy_type="act", pretrained_name_or_path=str(ckpt))
             assert "pretrained_name_or_path" in instructions_error(port, pretrained_name_or_path="/elsewhere")
             assert "actions_per_chunk: expected 1..16" in instructions_error(
@@ -109,6 +111,29 @@ def test_robot_client_receives_timed_chunks_with_real_time_chunking(checkpoints,
         before = {a.get_timestep(): a.get_action() for a in received[i - 1]}
         for a in received[i][: r["committed"]]:
             assert torch.allclose(a.get_action(), before[a.get_timestep()], atol=1e-6), (i, a.get_timestep())
+
+
+def test_compiled_server_chunks_are_the_eager_ones(checkpoints):
+    """`serve --compile` samples the chunk the eager server would, from the same generator's noise, with and
+    without a committed prefix; what it cannot compile is refused in one line."""
+    from action_decoder.serving import ServeConfig
+    from lerobot_policy_action_decoder.serve import PolicyServer, load_checkpoint
+
+    served = load_checkpoint(str(checkpoints["MF-1"]))
+    server = PolicyServer(ServeConfig(checkpoint=str(checkpoints["MF-1"]), compile=True), served)
+    batch = {"state": torch.randn(1, 6), "context": torch.tensor([[[0.0, 1.0]]])}     # the fixture's second task
+    prev = served.core.predict_action_chunk(batch)[0, 4:][None]                       # [1, 12, 3]
+    for rtc in ({}, {"prev_chunk": prev, "delay": 3, "rtc_mode": "trained"}):
+        kwargs = {"steps": None, "generator": torch.Generator().manual_seed(5), "return_logprob": False, **rtc}
+        want = served.core.predict_action_chunk(batch, **kwargs)[0]
+        got = server._compiled_chunk(batch, {**kwargs, "generator": torch.Generator().manual_seed(5)})
+        assert (got - want).abs().max() <= 1e-5
+    server.stop()
+    fm = load_checkpoint(str(checkpoints["FM-10"]))
+    with pytest.raises(ValueError, match="--compile: the compiled sampler runs trained real-time chunking only") as err:
+        PolicyServer(ServeConfig(checkpoint=str(checkpoints["FM-10"]), compile=True), fm)
+    assert "\n" not in str(err.value)
+    PolicyServer(ServeConfig(checkpoint=str(checkpoints["FM-10"]), compile=True, rtc=False), fm).stop()
 
 
 def test_camera_frames_and_task_reach_a_multi_task_camera_policy(tmp_path):

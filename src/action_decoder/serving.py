@@ -53,6 +53,8 @@ class ServeConfig:
     """auto: trained where the checkpoint was trained for the delay (--rtc-max-delay), else guided."""
     steps: Optional[int] = None
     """Sampling steps per chunk; default: the checkpoint's num_inference_timesteps."""
+    compile: bool = False
+    """Sample with the torch.compile'd sampler, compiled at the first observation (with --rtc: trained RTC, at most rtc_max_delay committed rows)."""
     obs_timeout: float = 2.0
     """Seconds a GetActions call waits for an observation before it returns empty."""
     seed: int = 0

@@ -41,6 +41,7 @@ from torch import Tensor
 
 from action_decoder import ActionDecoderPolicy as CorePolicy
 from action_decoder.cli import check_device
+from action_decoder.flows.paths import randn_rows
 from action_decoder.policy import follow_last
 from action_decoder.serving import (ServeConfig, chunk_timing, control_rate, delay_steps, expected_latency, plan_chunk,
                                     rate_mismatch, should_predict)
@@ -199,6 +200,9 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         if cfg.rtc_mode == "trained" and not served.core.config.rtc_max_delay:
             raise ValueError("--rtc-mode: 'trained' needs a checkpoint trained with real-time chunking "
                              "(train --rtc-max-delay N); this one has rtc_max_delay=0: use auto or guided")
+        if cfg.compile:
+            check_compiled_serving(cfg, served.core, self.rtc)
+        self.sample_fn: Optional[Callable] = None   # compile_sampler's, built at the first observation (--compile)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.stop_event = threading.Event()
         self.lock = threading.Lock()              # one chunk at a time, and the previous chunk below
@@ -261,6 +265,7 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         check_features(served, spec.lerobot_features, rename)
         check_device(spec.device, "policy_device")
         served.core.to(spec.device)
+        self.sample_fn = None                     # compiled for the device the client asks for
 
     def SendObservations(self, request_iterator, context):  # noqa: N802
         received = time.time()
@@ -325,19 +330,24 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         mode, committed = None, 0
         kwargs = {"steps": cfg.steps, "generator": self.generator, "return_logprob": False}
         if self.rtc and self.prev is not None and plan.overlap > 0:
-            wanted = None if cfg.rtc_mode == "auto" else cfg.rtc_mode
+            wanted = "trained" if cfg.compile else (None if cfg.rtc_mode == "auto" else cfg.rtc_mode)
             committed = plan.delay if wanted != "trained" else min(plan.delay, core.config.rtc_max_delay)
             mode = core.resolve_rtc_mode(wanted, committed)
             prev = self.prev[plan.prev_from: plan.prev_from + plan.overlap][None]          # [1, L, D]
             kwargs.update(prev_chunk=prev, delay=committed, rtc_mode=mode)
-        chunk = core.predict_action_chunk(batch, **kwargs)[0]                              # [H, D], policy units
+        compiling = cfg.compile and self.sample_fn is None
+        if cfg.compile:
+            chunk = self._compiled_chunk(batch, kwargs)                                    # [H, D], policy units
+        else:
+            chunk = core.predict_action_chunk(batch, **kwargs)[0]                          # [H, D], policy units
         sampled = time.perf_counter()
         rows = served.to_env(chunk[: spec.actions_per_chunk].detach().cpu())             # [A, D], robot units
         done = time.perf_counter()
         actions = [TimedAction(timestamp=ts, timestep=step, action=rows[i])
                    for i, (ts, step) in enumerate(chunk_timing(obs.get_timestamp(), k, plan.start, len(rows), cfg.fps))]
         self.prev, self.prev_start, self.prev_sent = chunk.detach(), plan.start, len(rows)
-        self.compute_s.append(done - start)
+        if not compiling:                          # compiling is not the latency of later chunks
+            self.compute_s.append(done - start)
         self.chunks += 1
         record = {"chunk": self.chunks, "obs_timestep": k, "must_go": bool(obs.must_go), "start": plan.start,
                   "rows": len(rows), "delay": delay, "overlap": plan.overlap, "committed": committed,
@@ -346,6 +356,21 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
                   "prepare_ms": round(1000 * (prepared - start), 3), "sample_ms": round(1000 * (sampled - prepared), 3),
                   "compute_ms": round(1000 * (done - start), 3)}
         return actions, record
+
+    def _compiled_chunk(self, batch: dict, kwargs: dict) -> Tensor:
+        """`predict_action_chunk(batch, **kwargs)[0]` through `compile_sampler` (trained RTC), from the noise the
+        eager call would draw with the server's generator; compiled at the first call."""
+        core = self.served.core
+        if self.sample_fn is None:
+            from action_decoder.compiled import compile_sampler
+
+            log.info("compiling the sampler for %s (one chunk's time, once)", next(core.parameters()).device)
+            self.sample_fn = compile_sampler(core, steps=kwargs["steps"], rtc=self.rtc)
+        cfg = core.config
+        noise = randn_rows(1, (cfg.action_chunk_size, cfg.action_dim), kwargs["generator"],
+                           next(core.parameters()).device)                                 # [1, H, D]
+        rtc = {"prev_chunk": kwargs["prev_chunk"], "delay": kwargs["delay"]} if "prev_chunk" in kwargs else {}
+        return self.sample_fn(batch, noise, **rtc)[0]
 
     def _report(self, record: dict) -> None:
         log.info("chunk %d for observation #%d%s: timesteps %d..%d, delay %d steps, %s, %.1f ms (sampling %.1f ms)",
@@ -362,6 +387,23 @@ class PolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         if self.log_file is not None:
             self.log_file.close()
             self.log_file = None
+
+
+def check_compiled_serving(cfg: ServeConfig, core: CorePolicy, rtc: bool) -> None:
+    """One ValueError line where `--compile` cannot serve this checkpoint: the compiled sampler is
+    deterministic and, with real-time chunking, runs the trained mode only."""
+    from action_decoder.compiled import check_compile
+    from action_decoder.export import export_refusal
+
+    check_compile()
+    refusal = export_refusal(core, None)
+    if refusal:
+        raise ValueError(f"--compile: {refusal}")
+    if rtc and (cfg.rtc_mode == "guided" or not core.config.rtc_max_delay):
+        raise ValueError("--compile: the compiled sampler runs trained real-time chunking only (a checkpoint trained "
+                         f"with --rtc-max-delay; this one has rtc_max_delay={core.config.rtc_max_delay}"
+                         f"{', and --rtc-mode guided was asked' if cfg.rtc_mode == 'guided' else ''}): "
+                         "use --no-rtc, or drop --compile")
 
 
 def serve(cfg: ServeConfig) -> None:
@@ -387,8 +429,8 @@ def serve(cfg: ServeConfig) -> None:
     rtc = "off" if not servicer.rtc else (f"{cfg.rtc_mode}, delay "
                                           f"{cfg.delay if cfg.delay is not None else 'measured'} at {cfg.fps:g} Hz")
     print(f"action-decoder serve: {served.path} ({served.layout} layout, {c.decoder_type}, "
-          f"{cfg.steps or c.num_inference_timesteps} steps, chunk {c.action_chunk_size}) on {cfg.host}:{port}; "
-          f"real-time chunking {rtc}", flush=True)
+          f"{cfg.steps or c.num_inference_timesteps} steps, chunk {c.action_chunk_size}{', compiled' if cfg.compile else ''}) "
+          f"on {cfg.host}:{port}; real-time chunking {rtc}", flush=True)
     if cfg.rtc and not servicer.rtc:
         log.info("DDPM has no real-time chunking: chunks are sampled without the previous one")
     stop = threading.Event()
