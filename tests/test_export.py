@@ -216,6 +216,8 @@ def test_trained_rtc_refusals_are_one_line(tmp_path):
     mf = lerobot_policy("mean_flow", rtc_max_delay=2)
     with pytest.raises(ValueError, match="rtc: the committed prefix is fed to the ODE sampler .* got sampler='euler'"):
         ChunkSampler(mf, sampler="euler", rtc=True)
+    with pytest.raises(ValueError, match=r"committed, delay: this sampler \(rtc=True\) takes .* got no committed"):
+        ChunkSampler(mf, rtc=True)(torch.zeros(1, 6), torch.zeros(1, 8, 3))
     runner = OnnxPolicy(mf.export_onnx(tmp_path / "r.onnx", rtc=True))
     state, prev = np.zeros((1, 6), np.float32), np.zeros((1, 4, 3), np.float32)
     for kw, field in (({"committed": prev, "delay": 3}, r"delay: expected values in 0..2"),

@@ -177,6 +177,10 @@ class ChunkSampler(nn.Module):
         prefix = self._prefix(context, context_mask, images)
         x = noise.float()                                                             # [B, H, D]
         if self.rtc:
+            if committed is None or delay is None:
+                raise ValueError(f"committed, delay: this sampler (rtc=True) takes the committed actions [B, "
+                                 f"{self.max_delay}, D] and the delays [B] (0: a plain chunk); got "
+                                 f"{'no committed' if committed is None else 'no delay'}")
             return self._trained_rtc(s, prefix, x, committed, delay)
 
         def const(v: float) -> Tensor:                       # a constant of the graph, on the chunk's device
