@@ -24,6 +24,7 @@ Latency: batch 1, median CPU time over interleaved plain and RTC calls of the sa
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -107,7 +108,7 @@ def _cost_calls(policy, runtime: str, state: torch.Tensor, prev: torch.Tensor, s
     thread) or `compile_sampler` (its device's default mode, plain against rtc=True)."""
     cfg = policy.config
     if runtime == "eager":
-        counter = iter(range(10**9))
+        counter = itertools.count()                   # a fresh noise seed per call
         return {arm: (lambda a: lambda: chunk(policy, state, steps, a, prev, MAX_DELAY,
                                               torch.Generator(state.device).manual_seed(next(counter))))(arm)
                 for arm in ("naive", "trained")}

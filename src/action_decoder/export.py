@@ -110,7 +110,7 @@ def rtc_refusal(policy: "ActionDecoderPolicy", sampler: Optional[str]) -> Option
     if not cfg.rtc_max_delay:
         return ("rtc: the graph feeds committed actions to a checkpoint trained with real-time chunking "
                 "(train --rtc-max-delay N); this one has rtc_max_delay=0")
-    if not (chosen == "ode" or (chosen == "euler" and cfg.decoder_type == "flow_matching")):
+    if not policy.feeds_prefix(chosen):
         return (f"rtc: the committed prefix is fed to the ODE sampler ('ode'"
                 f"{', or euler' if cfg.decoder_type == 'flow_matching' else ''}), got sampler={chosen!r}")
     return None

@@ -386,6 +386,11 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         _finite(prev_chunk, "prev_chunk")
         return int(delay)
 
+    def feeds_prefix(self, sampler: str) -> bool:
+        """Whether `sampler` (resolved) can be fed a committed prefix (trained RTC): "ode", or "euler" for
+        flow matching."""
+        return sampler == "ode" or (sampler == "euler" and self.config.decoder_type == "flow_matching")
+
     def resolve_rtc_mode(self, rtc_mode: Optional[str], delay: int = 0, sampler: Optional[str] = None) -> str:
         """The real-time chunking mode a chunk with a previous one uses: `rtc_mode` ("trained" |
         "guided"), or for None "trained" where the checkpoint was trained for it (`rtc_max_delay` ≥
@@ -396,7 +401,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                              f"has it, else guided), got {rtc_mode!r}")
         cfg = self.config
         chosen = self.resolve_sampler(sampler)
-        feeds = chosen == "ode" or (chosen == "euler" and cfg.decoder_type == "flow_matching")
+        feeds = self.feeds_prefix(chosen)
         if rtc_mode == "guided" or (rtc_mode is None and not (cfg.rtc_max_delay >= delay and cfg.rtc_max_delay
                                                                and feeds)):
             return "guided"
