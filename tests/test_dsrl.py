@@ -16,7 +16,7 @@ from torch.distributions import AffineTransform, Normal, TanhTransform, Transfor
 from action_decoder import ActionDecoderPolicy, DecoderConfig
 from action_decoder.cli import main
 from action_decoder.noise_actor import NoiseActor, kl_to_prior
-from action_decoder.rl.dsrl import decode, dsrl_policy, dsrl_update
+from action_decoder.rl.dsrl import alias_mode, decode, decode_pool, dsrl_policy, dsrl_update, noise_actor_fn
 from action_decoder.rl.sac import ReplayBuffer, Temperature, make_target
 from action_decoder.rl.critics import QEnsemble, TwinQ, subset_min
 
@@ -101,16 +101,23 @@ def test_config_refuses_a_bad_noise_actor_width(bad):
         DecoderConfig(noise_actor_hidden=bad)
 
 
-def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None, members=2):
+def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None, members=2, alias="update"):
     policy = dsrl_policy(_bc(decoder), hidden=16, bound=2.5, steps=None)
     gen = torch.Generator().manual_seed(0)
     n = 16
     buffer = ReplayBuffer(64)
-    buffer.add({"state": torch.randn(n, S, generator=gen), "progress": torch.rand(n, generator=gen),
-                "noise": torch.randn(n, H, D, generator=gen), "actions": torch.randn(n, H, D, generator=gen),
-                "reward": torch.rand(n, generator=gen) if reward is None else reward,
-                "next_state": torch.randn(n, S, generator=gen), "next_progress": torch.rand(n, generator=gen),
-                "done": torch.full((n,), done)})
+    state = torch.randn(n, S, generator=gen)
+    rows = {"state": state, "progress": torch.rand(n, generator=gen),
+            "noise": torch.randn(n, H, D, generator=gen), "actions": torch.randn(n, H, D, generator=gen),
+            "reward": torch.rand(n, generator=gen) if reward is None else reward,
+            "next_state": torch.randn(n, S, generator=gen), "next_progress": torch.rand(n, generator=gen),
+            "done": torch.full((n,), done)}
+    if alias == "iteration":        # what the rollout stores: decoded pairs, the executed one and two prior ones
+        rows["actions"] = decode(policy, {"state": state}, rows["noise"])
+        rows["prior_noise"] = torch.randn(n, 2, H, D, generator=gen)
+        rows["prior_actions"] = decode(policy, {"state": state.repeat_interleave(2, 0)},
+                                       rows["prior_noise"].flatten(0, 1)).unflatten(0, (n, 2))
+    buffer.add(rows)
     q = TwinQ(S, H * D, hidden=32) if members == 2 else QEnsemble(S, H * D, members, hidden=32)
     critics = {"q": q, "q_target": make_target(q)}
     temperature = Temperature(0.01, 0.0)
@@ -125,22 +132,64 @@ def _setup(noise_critic="noise", decoder="flow_matching", done=True, reward=None
     return policy, critics, temperature, opts, buffer, cfg, gen
 
 
-@pytest.mark.parametrize("noise_critic,members", [("noise", 2), ("action", 2), ("noise", 5), ("action", 5)])
-def test_critic_learns_the_reward_of_terminal_transitions(noise_critic, members):
+@pytest.mark.parametrize("noise_critic,members,alias", [("noise", 2, None), ("action", 2, "update"),
+                                                         ("noise", 5, None), ("action", 5, "update"),
+                                                         ("action", 2, "iteration"), ("action", 5, "iteration")])
+def test_critic_learns_the_reward_of_terminal_transitions(noise_critic, members, alias):
     """done everywhere: the TD target is the reward itself, whatever the actor does."""
-    policy, critics, temperature, opts, buffer, cfg, gen = _setup(noise_critic, members=members)
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup(noise_critic, members=members, alias=alias or "update")
     make_batch = lambda s: {"state": s}                                     # noqa: E731
+    pool = decode_pool(policy, buffer, make_batch, 32, gen) if alias == "iteration" else None
     key = "q_action_loss" if noise_critic == "action" else "q_loss"
-    losses = [dsrl_update(policy, critics, temperature, opts, buffer, make_batch, cfg, gen)[key] for _ in range(100)]
+    losses = [dsrl_update(policy, critics, temperature, opts, buffer, make_batch, cfg, gen, alias or "update",
+                          pool)[key] for _ in range(100)]
     assert losses[-1] < 0.05 * losses[0]
     if noise_critic == "action":    # the noise critic follows Q_A through the decoder (aliasing)
         b = {k: v[:buffer.size] for k, v in buffer.data.items()}
-        w = torch.randn(16, H, D, generator=gen)
-        qa = subset_min(critics["q_action"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"],
-                                            decode(policy, {"state": b["state"]}, w)), members, gen)
-        qw = subset_min(critics["q"](policy.noise_actor_inputs({"state": b["state"]})["state"], b["progress"], w),
-                        members, gen)
+        # "update" aliases fresh prior noise at every update; "iteration" the prior pairs the rollout stored
+        w = torch.randn(16, H, D, generator=gen) if alias == "update" else b["prior_noise"][:, 1]
+        state = policy.noise_actor_inputs({"state": b["state"]})["state"]
+        qa = torch.stack(critics["q_action"](state, b["progress"], decode(policy, {"state": b["state"]}, w))).mean(0)
+        qw = torch.stack(critics["q"](state, b["progress"], w)).mean(0)
         assert (qa - qw).abs().mean() < 0.5 * qa.abs().mean()
+
+
+def test_decode_pool_holds_the_actors_next_noise_and_its_exact_chunk():
+    policy, _, _, _, buffer, _, gen = _setup("action", alias="iteration")
+    for p in policy.noise_actor.head.parameters():          # an actor away from the prior
+        p.data.normal_(0, 0.3, generator=torch.Generator().manual_seed(3))
+    pool = decode_pool(policy, buffer, lambda s: {"state": s}, 40, gen, chunk=16)
+    assert len(pool["reward"]) == 40 and set(buffer.data) < set(pool)
+    torch.testing.assert_close(pool["next_actions"], decode(policy, {"state": pool["next_state"]}, pool["next_noise"]),
+                               atol=1e-6, rtol=0)
+    mean, log_std = policy.noise_actor(policy.noise_actor_inputs({"state": pool["next_state"]})["state"])
+    actor = policy.noise_actor
+    w = actor.bound * torch.atanh(pool["next_noise"] / actor.bound)           # the draw before the bound
+    logp = (Normal(mean, log_std.exp()).log_prob(w) - actor.log_det(w)).mean((-2, -1))
+    torch.testing.assert_close(pool["next_logp"], logp, atol=1e-4, rtol=1e-4)
+
+
+def test_rollout_acts_with_the_actors_noise_and_stores_exactly_decoded_prior_pairs():
+    policy = dsrl_policy(_bc(), hidden=16, bound=2.5, steps=None)
+    states = torch.randn(3, S, generator=torch.Generator().manual_seed(2)).numpy()
+    progress = torch.zeros(3).numpy()
+    plain = noise_actor_fn(policy, lambda s: {"state": s}, torch.Generator().manual_seed(5))
+    paired = noise_actor_fn(policy, lambda s: {"state": s}, torch.Generator().manual_seed(5), prior_pairs=2)
+    (chunk, rec), (chunk_p, rec_p) = plain(states, progress), paired(states, progress)
+    assert torch.equal(rec["noise"], rec_p["noise"])                    # the actor's draw comes first
+    torch.testing.assert_close(torch.from_numpy(chunk_p), torch.from_numpy(chunk), atol=1e-6, rtol=0)
+    assert rec_p["prior_noise"].shape == (3, 2, H, D) and rec_p["prior_actions"].shape == (3, 2, H, D)
+    assert rec_p["prior_noise"].abs().max() < 2.5                       # bounded as the actor's noise is
+    for j in range(2):
+        torch.testing.assert_close(rec_p["prior_actions"][:, j],
+                                   decode(policy, {"state": torch.from_numpy(states)}, rec_p["prior_noise"][:, j]),
+                                   atol=1e-6, rtol=0)
+
+
+def test_alias_decodes_auto_decodes_once_an_iteration_when_a_chunk_takes_more_than_two_calls():
+    two, ten = (dsrl_policy(_bc(), hidden=16, bound=2.5, steps=k) for k in (2, 10))
+    assert alias_mode(two, "auto") == "update" and alias_mode(ten, "auto") == "iteration"
+    assert alias_mode(two, "iteration") == "iteration" and alias_mode(ten, "update") == "update"
 
 
 def test_returns_to_go_stop_at_each_episode_end():
@@ -222,12 +271,14 @@ def _run(ckpt, out, *extra):
                  "--checkpoint-every", "1", "--noise-hidden", "16", *extra])
 
 
-def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys):
+@pytest.mark.parametrize("alias", ["update", "iteration"])
+def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alias):
     ckpt = tmp_path / "bc"
     _bc().save_pretrained(ckpt)
-    assert _run(ckpt, tmp_path / "whole", "--env-steps", "72") == 0
-    assert _run(ckpt, tmp_path / "cut", "--env-steps", "48") == 0
-    assert _run(ckpt, tmp_path / "cut", "--env-steps", "72", "--resume") == 0
+    opt = ("--alias-decodes", alias)
+    assert _run(ckpt, tmp_path / "whole", "--env-steps", "72", *opt) == 0
+    assert _run(ckpt, tmp_path / "cut", "--env-steps", "48", *opt) == 0
+    assert _run(ckpt, tmp_path / "cut", "--env-steps", "72", "--resume", *opt) == 0
     whole, cut = (ActionDecoderPolicy.from_pretrained(tmp_path / d / "final") for d in ("whole", "cut"))
     for a, b in zip(whole.state_dict().values(), cut.state_dict().values()):
         assert torch.equal(a, b)

@@ -8,7 +8,17 @@ the learner takes noise as its action. Two critics are offered (`critic`):
 - "action" (DSRL-NA, noise aliasing): Q_A(s, a) learnt by TD on the executed actions, whose
   target decodes the actor's next noise, and Q_W(s, w) regressed onto Q_A(s, decode(s, w)) for
   noise drawn from the actor and from the prior: noises that decode to the same chunk get the
-  same value. Each update decodes two batches.
+  same value. Where the decoder runs is `alias_decodes`:
+  - "update": at every update, two batches (the actor's next noise for Q_A's target, the actor's
+    and the prior's noise at s for Q_W), exactly as above;
+  - "iteration": once an iteration, for a pool of `POOL_SIZE` buffer transitions (`decode_pool`):
+    the actor's next noise at s' and its chunk. That iteration's updates draw their batches from
+    the pool, so Q_A's target reads the chunk of the actor as it was when the iteration began
+    (one iteration behind, as a target network is a few hundred updates behind). Q_W regresses
+    onto Q_A at the pool's pairs (s', w', a') and at pairs the rollout decoded when it acted: the
+    executed noise and `PRIOR_PAIRS` prior noises per decision (the decoder is frozen, so a pair
+    (s, w, decode(s, w)) never goes stale); member i of Q_W follows member i of Q_A, so that the
+    actor's minimum over two members keeps Q_A's pessimism. No update calls the decoder.
 
 Each critic is an ensemble (`critics`, 2 by default): TD targets take the minimum of two members
 drawn at random (REDQ, arXiv 2101.05982; with two members, the twin minimum), and the actor reads
@@ -32,6 +42,19 @@ from ..noise_actor import kl_to_prior
 from ..policy import ActionDecoderPolicy
 from .critics import subset_min
 from .sac import ReplayBuffer, Temperature
+
+PRIOR_PAIRS = 2
+"""alias_decodes="iteration": prior noises N(0, I) (bounded) decoded per decision when the rollout acts."""
+POOL_SIZE = 4096
+"""alias_decodes="iteration": buffer transitions whose next noise is decoded once an iteration."""
+
+
+def alias_mode(policy: ActionDecoderPolicy, requested: str) -> str:
+    """`alias_decodes` resolved: "auto" decodes at every update when a chunk takes at most 2
+    network calls (MeanFlow at 1 or 2 steps), once an iteration otherwise."""
+    if requested != "auto":
+        return requested
+    return "update" if policy.config.num_inference_timesteps <= 2 else "iteration"
 
 
 def dsrl_policy(bc: ActionDecoderPolicy, hidden: int, bound: float, steps: Optional[int],
@@ -61,24 +84,55 @@ def decode(policy: ActionDecoderPolicy, batch: dict, noise: Tensor) -> Tensor:
         return policy.sample(batch, noise=noise, return_logprob=False).actions
 
 
-def noise_actor_fn(policy: ActionDecoderPolicy, make_batch: Callable[[Tensor], dict], generator: torch.Generator):
+def noise_actor_fn(policy: ActionDecoderPolicy, make_batch: Callable[[Tensor], dict], generator: torch.Generator,
+                   prior_pairs: int = 0):
     """The rollout's act function: noise from the stochastic actor, chunk from the frozen decoder;
-    records the noise [H, D] and the executed actions [n, D]."""
+    records the noise [H, D] and the executed actions [n, D], and with `prior_pairs` P > 0 that many
+    prior noises [P, H, D] and their executed actions [P, n, D] ("prior_noise", "prior_actions"),
+    decoded in the same call."""
     n_exec = policy.config.n_action_steps
 
     @torch.no_grad()
     def act(states: np.ndarray, progress: np.ndarray):
         batch = make_batch(torch.from_numpy(states))
-        noise = policy.noise_actor.sample(**policy.noise_actor_inputs(batch), generator=generator)[0]
-        actions = decode(policy, batch, noise)
-        return actions.numpy(), {"noise": noise, "actions": actions[:, :n_exec]}
+        noise = policy.noise_actor.sample(**policy.noise_actor_inputs(batch), generator=generator)[0]  # [B, H, D]
+        if not prior_pairs:
+            actions = decode(policy, batch, noise)
+            return actions.numpy(), {"noise": noise, "actions": actions[:, :n_exec]}
+        b, p = len(noise), prior_pairs
+        prior = policy.noise_actor.bounded(torch.randn((b, p, *noise.shape[1:]), generator=generator))  # [B, P, H, D]
+        rows = torch.cat([noise[:, None], prior], 1).flatten(0, 1)                                    # [B(1+P), H, D]
+        repeated = {k: v.repeat_interleave(1 + p, 0) if torch.is_tensor(v) else v for k, v in batch.items()}
+        chunks = decode(policy, repeated, rows)
+        chunks = chunks.unflatten(0, (b, 1 + p))                                                      # [B, 1+P, H, D]
+        return chunks[:, 0].numpy(), {"noise": noise, "actions": chunks[:, 0, :n_exec],
+                                      "prior_noise": prior, "prior_actions": chunks[:, 1:, :n_exec]}
 
     return act
 
 
-def _critic_step(q, optimizer, pred_target: tuple[tuple[Tensor, ...], Tensor], grad_clip: float) -> float:
+def decode_pool(policy: ActionDecoderPolicy, buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict],
+                size: int, generator: torch.Generator, chunk: int = 512) -> dict:
+    """`size` buffer transitions drawn uniformly with, at their next state s', the current actor's
+    noise "next_noise" [N, H, D], its log-prob "next_logp" [N] and the executed part of its chunk
+    "next_actions" [N, n, D], decoded `chunk` rows at a time."""
+    pool = buffer.sample(size, generator)
+    n = pool["actions"].shape[1]
+    w2, logp2, a2 = [], [], []
+    with torch.no_grad():
+        for i in range(0, size, chunk):
+            nxt = make_batch(pool["next_state"][i:i + chunk])
+            w, logp = policy.noise_actor.sample(**policy.noise_actor_inputs(nxt), generator=generator)[:2]
+            w2.append(w), logp2.append(logp), a2.append(decode(policy, nxt, w)[:, :n])
+    return {**pool, "next_noise": torch.cat(w2), "next_logp": torch.cat(logp2), "next_actions": torch.cat(a2)}
+
+
+def _critic_step(q, optimizer, pred_target: tuple[tuple[Tensor, ...], "Tensor | tuple[Tensor, ...]"],
+                 grad_clip: float) -> float:
+    """One step of the members' squared error to one shared target, or each to its own (a tuple)."""
     preds, target = pred_target
-    loss = sum((p - target).square().mean() for p in preds)
+    targets = target if isinstance(target, tuple) else (target,) * len(preds)
+    loss = sum((p - t).square().mean() for p, t in zip(preds, targets))
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(q.parameters(), grad_clip)
@@ -93,21 +147,29 @@ def _polyak(q, q_target, tau: float) -> None:
 
 
 def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Temperature, optimizers: dict,
-                buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator) -> dict:
+                buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator,
+                alias: str = "update", pool: Optional[dict] = None) -> dict:
     """One critic, actor and temperature step on a replay batch.
 
     `critics`: {"q": Q(s, w), "q_target"} and, with `cfg.noise_critic == "action"`, {"q_action":
-    Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action").
+    Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action"). `alias`:
+    `alias_mode`'s "update" or "iteration" (the buffer then holds "prior_noise" and "prior_actions",
+    and the batch is drawn from `pool`, `decode_pool`'s).
     """
     actor, alpha = policy.noise_actor, temperature.alpha
-    b = buffer.sample(cfg.sac_batch_size, generator)
+    if pool is None:
+        b = buffer.sample(cfg.sac_batch_size, generator)
+    else:
+        idx = torch.randint(len(pool["reward"]), (cfg.sac_batch_size,), generator=generator)
+        b = {k: v[idx] for k, v in pool.items()}
     n = b["actions"].shape[1]
     now, nxt = make_batch(b["state"]), make_batch(b["next_state"])
     s, s2 = policy.noise_actor_inputs(now), policy.noise_actor_inputs(nxt)
     q, q_target = critics["q"], critics["q_target"]
     stats = {}
     with torch.no_grad():
-        w2, logp2, _, _ = actor.sample(**s2, generator=generator)
+        if pool is None:            # a pool holds the actor's next noise already
+            w2, logp2, _, _ = actor.sample(**s2, generator=generator)
         cont = cfg.gamma * (1 - b["done"].float())
     if cfg.noise_critic == "noise":
         with torch.no_grad():
@@ -115,6 +177,23 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
                                            - alpha * logp2)
         stats["q_loss"] = _critic_step(q, optimizers["q"], (q(s["state"], b["progress"], b["noise"]), target),
                                        cfg.grad_clip)
+    elif alias == "iteration":
+        qa, qa_target = critics["q_action"], critics["q_action_target"]
+        with torch.no_grad():   # the pool's chunk at s' for the actor's next noise (decoded when the iteration began)
+            target = b["reward"] + cont * (subset_min(qa_target(s2["state"], b["next_progress"], b["next_actions"]),
+                                                      2, generator) - alpha * b["next_logp"])
+        stats["q_action_loss"] = _critic_step(qa, optimizers["q_action"],
+                                              (qa(s["state"], b["progress"], b["actions"]), target), cfg.grad_clip)
+        _polyak(qa, qa_target, cfg.tau)
+        with torch.no_grad():   # aliasing at decoded pairs: the executed one and a prior one at s, the actor's at s'
+            pick = torch.randint(b["prior_noise"].shape[1], (len(target),), generator=generator)
+            rows = torch.arange(len(target))
+            w = torch.cat([b["noise"], b["prior_noise"][rows, pick], b["next_noise"]])        # [3B, H, D]
+            a = torch.cat([b["actions"], b["prior_actions"][rows, pick], b["next_actions"]])  # [3B, n, D]
+            state = torch.cat([s["state"], s["state"], s2["state"]])
+            progress = torch.cat([b["progress"], b["progress"], b["next_progress"]])
+            targets = qa(state, progress, a)
+        stats["q_loss"] = _critic_step(q, optimizers["q"], (q(state, progress, w), targets), cfg.grad_clip)
     else:
         qa, qa_target = critics["q_action"], critics["q_action_target"]
         with torch.no_grad():

@@ -37,7 +37,7 @@ from ..run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, existing_run
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import QEnsemble, TwinQ, ValueNet
-from .dsrl import dsrl_policy, dsrl_update, noise_actor_fn
+from .dsrl import POOL_SIZE, PRIOR_PAIRS, alias_mode, decode_pool, dsrl_policy, dsrl_update, noise_actor_fn
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, Temperature, make_target, sac_update
@@ -154,6 +154,8 @@ class FinetuneConfig:
     """dsrl: sampling steps of the frozen decoder (default: the checkpoint's)."""
     noise_critic: Literal["noise", "action"] = "action"
     """dsrl: Q on the executed actions with noise aliasing (DSRL-NA) or on the noise (DSRL-SAC)."""
+    alias_decodes: Literal["auto", "update", "iteration"] = "auto"
+    """dsrl action critic: decode the actor's chunks at every update or once an iteration for a pool (auto: update when a chunk takes ≤ 2 network calls)."""
     critics: int = 2
     """dsrl: members of each critic ensemble (2: twin Q; more: targets from the minimum of 2 drawn at random)."""
     noise_hidden: int = 256
@@ -467,7 +469,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         optimizers = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=cfg.noise_lr),
                       "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
-        if cfg.noise_critic == "action":
+        alias = alias_mode(policy, cfg.alias_decodes) if cfg.noise_critic == "action" else None
+        if alias is not None:
             q_action = QEnsemble(state_dim, n_exec * policy.config.action_dim, cfg.critics)        # Q_A(s, a)
             critics.update(q_action=q_action, q_action_target=make_target(q_action))
             optimizers["q_action"] = torch.optim.Adam(q_action.parameters(), lr=cfg.critic_lr)
@@ -614,7 +617,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
 
     while pending is not None or not run_ends():
         if pending is not None:          # resumed inside a SAC or DSRL iteration: its rollout is in the buffer
-            base, runs, n_updates, pending = pending["base"], pending["runs"], pending["n_updates"], None
+            base, runs, n_updates, pool = pending["base"], pending["runs"], pending["n_updates"], pending.get("pool")
+            pending = None
             rollout_cpu = base["rollout_cpu_s"]
         else:
             if interrupted["set"]:
@@ -622,7 +626,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
             cpu_start = time.process_time()
             seeds = train_layout_seeds(cfg.seed, iteration, cfg.num_envs, group)
             policy.eval()
-            act = noise_actor_fn(policy, make_batch, gen) if dsrl else \
+            act = noise_actor_fn(policy, make_batch, gen, PRIOR_PAIRS if alias == "iteration" else 0) if dsrl else \
                 chain_actor(policy, make_batch, cfg.sde_steps, gen, cfg.logprob_reduce, squash=cfg.algo == "sac")
             ro = collect(envs, seeds, act, n_exec, cfg.max_episode_steps, stop_on_success=cfg.reward == "success")
             rec = ro.records
@@ -667,19 +671,24 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                 base["return_to_go"] = float(returns_to_go(rewards, ro.last, cfg.gamma).mean())
                 buffer.add({"state": ro.states, "progress": ro.progress, "actions": rec["actions"], "reward": rewards,
                             "next_state": ro.next_states, "next_progress": ro.next_progress,
-                            "done": episode_ends(ro), **({"noise": rec["noise"]} if dsrl else {})})
+                            "done": episode_ends(ro), **({k: rec[k] for k in ("noise", "prior_noise", "prior_actions")
+                                                          if k in rec} if dsrl else {})})
                 runs = []
                 n_updates = (max(1, int(cfg.sac_updates_per_decision * len(rewards)))
                              if buffer.size >= cfg.sac_batch_size else 0)
+                pool = decode_pool(policy, buffer, make_batch, POOL_SIZE, gen) \
+                    if dsrl and alias == "iteration" and n_updates else None
         if cfg.algo != "ppo":            # checked between updates: Ctrl-C pauses the iteration, the budget cuts it
             while len(runs) < n_updates:
                 if interrupted["set"]:
-                    interrupt({"base": base, "runs": runs, "n_updates": n_updates})
+                    interrupt({"base": base, "runs": runs, "n_updates": n_updates, "pool": pool})
                 if cpu_left() <= 0:
                     break
                 if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
-                    save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates})     # a long iteration
-                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen) if dsrl
+                    save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates, "pool": pool})  # long iteration
+                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, alias,
+                                        pool)
+                            if dsrl
                             else sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
                                             make_batch, cfg, gen))
             stats = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]} if runs else {}
