@@ -345,3 +345,37 @@ def test_export_refuses_a_noise_actor_policy_in_one_line(tmp_path):
     policy = dsrl_policy(_bc(), hidden=16, bound=2.5, steps=None)
     with pytest.raises(ValueError, match="^noise_actor_hidden: a noise-space"):
         policy.export_onnx(tmp_path / "p.onnx")
+
+
+def test_ctrl_c_inside_an_iteration_keeps_its_decoded_pool_and_resume_continues_exactly(tmp_path, capsys, monkeypatch):
+    """--alias-decodes iteration: a checkpoint written between two updates holds the iteration's pool,
+    and --resume ends with the uninterrupted run's weights."""
+    import importlib
+    import os
+    import signal
+
+    from action_decoder.run_dir import load_state
+
+    F = importlib.import_module("action_decoder.rl.finetune")
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    opt = ("--env-steps", "48", "--alias-decodes", "iteration")
+    assert _run(ckpt, tmp_path / "a", *opt) == 0
+    calls, real = [], F.dsrl_update
+
+    def interrupted(*a, **k):                   # 12 updates an iteration: the 6th of the second
+        calls.append(1)
+        if len(calls) == 18:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(F, "dsrl_update", interrupted)
+    assert _run(ckpt, tmp_path / "b", *opt) == 130
+    pending = load_state(tmp_path / "b" / "checkpoints" / "step_0000001")["pending"]
+    assert len(pending["runs"]) == 6 and len(pending["pool"]["next_actions"]) == 4096
+    monkeypatch.setattr(F, "dsrl_update", real)
+    capsys.readouterr()
+    assert _run(ckpt, tmp_path / "b", *opt, "--resume") == 0
+    assert "inside iteration 2, after 6 of its 12 updates" in capsys.readouterr().out
+    a, b = (ActionDecoderPolicy.from_pretrained(tmp_path / r / "final").state_dict() for r in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
