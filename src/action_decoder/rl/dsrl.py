@@ -148,13 +148,13 @@ def _polyak(q, q_target, tau: float) -> None:
 
 def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Temperature, optimizers: dict,
                 buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator,
-                alias: str = "update", pool: Optional[dict] = None) -> dict:
+                pool: Optional[dict] = None) -> dict:
     """One critic, actor and temperature step on a replay batch.
 
     `critics`: {"q": Q(s, w), "q_target"} and, with `cfg.noise_critic == "action"`, {"q_action":
-    Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action"). `alias`:
-    `alias_mode`'s "update" or "iteration" (the buffer then holds "prior_noise" and "prior_actions",
-    and the batch is drawn from `pool`, `decode_pool`'s).
+    Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action"). `pool`:
+    `decode_pool`'s, for the action critic with `alias_decodes="iteration"` (the batch is drawn from it,
+    and the buffer holds "prior_noise" and "prior_actions"); None decodes at this update.
     """
     actor, alpha = policy.noise_actor, temperature.alpha
     if pool is None:
@@ -177,7 +177,7 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
                                            - alpha * logp2)
         stats["q_loss"] = _critic_step(q, optimizers["q"], (q(s["state"], b["progress"], b["noise"]), target),
                                        cfg.grad_clip)
-    elif alias == "iteration":
+    elif pool is not None:
         qa, qa_target = critics["q_action"], critics["q_action_target"]
         with torch.no_grad():   # the pool's chunk at s' for the actor's next noise (decoded when the iteration began)
             target = b["reward"] + cont * (subset_min(qa_target(s2["state"], b["next_progress"], b["next_actions"]),

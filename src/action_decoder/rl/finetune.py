@@ -686,8 +686,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                     break
                 if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
                     save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates, "pool": pool})  # long iteration
-                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, alias,
-                                        pool)
+                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, pool)
                             if dsrl
                             else sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
                                             make_batch, cfg, gen))
