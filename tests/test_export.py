@@ -206,6 +206,9 @@ def test_trained_rtc_graph_is_sample_with_the_committed_prefix(decoder, kw, tmp_
     assert np.abs(plain - policy.predict_action_chunk({"state": state}, noise=noise).numpy()).max() <= TOL
     same = runner.predict_action_chunk(state.numpy(), noise.numpy(), committed=prev[:, :2].numpy(), delay=2)
     assert np.abs(same[3] - out[3]).max() <= TOL                              # one delay for all rows; L < M is padded
+    one = runner.predict_action_chunk(state[:1].numpy(), noise[:1].numpy(), committed=prev[:1, :2].numpy(),
+                                      delay=np.int64(2))                 # another batch size, a numpy integer
+    assert one.shape == (1, 8, 3) and np.abs(one[0] - same[0]).max() <= TOL
 
 
 @pytest.mark.filterwarnings("ignore:sampler='euler' on a mean_flow decoder")
@@ -224,6 +227,7 @@ def test_trained_rtc_refusals_are_one_line(tmp_path):
                       ({"committed": prev[:, :1], "delay": 2}, r"delay: expected values in 0..1"),
                       ({"delay": 1}, "delay: a delay of 1 commits actions, and committed is missing"),
                       ({"committed": prev, "delay": 1.5}, "delay: expected an integer"),
+                      ({"committed": prev, "delay": True}, "delay: expected an integer"),
                       ({"committed": prev[0], "delay": 1}, r"committed: expected float32 values of shape \[1, L <= 8, 3\]"),
                       ({"committed": np.full((1, 4, 3), np.nan, np.float32), "delay": 1}, "committed: contains NaN")):
         with pytest.raises(ValueError, match=field) as err:

@@ -53,6 +53,7 @@ def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None
     mode = _mode(policy, mode) if backend == "inductor" else None
     compiled = torch.compile(module, mode=mode, backend=backend, fullgraph=True, dynamic=False)
     max_delay = module.max_delay
+    delay_inputs: dict[tuple, Tensor] = {}                    # (batch size, delay, device) -> the delay input
 
     @torch.no_grad()
     def sample(batch: Mapping[str, Any], noise: Tensor, prev_chunk: Optional[Tensor] = None, delay: int = 0) -> Tensor:
@@ -74,10 +75,15 @@ def compile_sampler(policy: "ActionDecoderPolicy", sampler: Optional[str] = None
         if delay > max_delay:
             raise ValueError(f"delay: {delay} exceeds rtc_max_delay={max_delay}, the longest prefix this checkpoint "
                              f"was trained to continue")
-        committed = noise.new_zeros(b, max_delay, dim)                                       # [B, M, D] env units
-        rows = min(max_delay, prev_chunk.shape[1])
-        committed[:, :rows] = prev_chunk[:, :rows].to(committed)
-        return compiled(*args, committed, torch.full((b,), delay, dtype=torch.int64, device=device))
+        if prev_chunk.shape[1] >= max_delay:                  # the usual case: the committed rows, no copy
+            committed = prev_chunk[:, :max_delay].to(noise).contiguous()                     # [B, M, D] env units
+        else:
+            committed = noise.new_zeros(b, max_delay, dim)
+            committed[:, :prev_chunk.shape[1]] = prev_chunk.to(committed)
+        delays = delay_inputs.get((b, delay, device))
+        if delays is None:                                    # one per (batch size, delay, device), not one per chunk
+            delays = delay_inputs[b, delay, device] = torch.full((b,), delay, dtype=torch.int64, device=device)
+        return compiled(*args, committed, delays)
 
     sample.sampler, sample.steps, sample.rtc_max_delay = module.sampler, module.steps, max_delay
     return sample

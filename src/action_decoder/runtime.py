@@ -85,6 +85,7 @@ class OnnxPolicy:
         self.batch_size = int(self.metadata["batch_size"])               # 0: any
         self.input_names = [i.name for i in self.runner.get_inputs()]
         self.rtc_max_delay = int(self.metadata.get("rtc_max_delay", 0)) if DELAY in self.input_names else 0
+        self._delays: dict[tuple[int, int], np.ndarray] = {}          # (delay, batch) -> the graph's delay input
 
     @property
     def state_dim(self) -> int:
@@ -154,25 +155,37 @@ class OnnxPolicy:
         return self.runner.run(None, feeds)[0]
 
     def _committed(self, committed, delay, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """(committed actions [B, M, D] float32, delays [B] int64) for the graph, or one ValueError line."""
+        """(committed actions [B, M, D] float32, delays [B] int64) for the graph, or one ValueError line.
+        Called once a chunk: with one integer delay (the usual case) it builds no delay array."""
         m, (h, d) = self.rtc_max_delay, self.chunk_shape
-        delays = np.asarray(delay)
-        if delays.dtype.kind not in "iu" or delays.ndim > 1 or (delays.ndim == 1 and len(delays) != b):
-            raise ValueError(f"{DELAY}: expected an integer or {b} integers (one per row) in 0..{m}, got {delay!r}")
-        delays = np.broadcast_to(delays, (b,)).astype(np.int64)
+        if isinstance(delay, (int, np.integer)) and not isinstance(delay, (bool, np.bool_)):
+            lo = hi = int(delay)
+            delays = self._delays.get((lo, b))
+            if delays is None:                                     # one read-only array per (delay, batch)
+                delays = np.full(b, lo, dtype=np.int64)
+                delays.flags.writeable = False
+                self._delays[lo, b] = delays
+        else:
+            delays = np.asarray(delay)
+            if delays.dtype.kind not in "iu" or delays.ndim > 1 or (delays.ndim == 1 and len(delays) != b):
+                raise ValueError(f"{DELAY}: expected an integer or {b} integers (one per row) in 0..{m}, got {delay!r}")
+            delays = np.broadcast_to(delays, (b,)).astype(np.int64)
+            lo, hi = int(delays.min()), int(delays.max())
         if committed is None:
-            if delays.any():
-                raise ValueError(f"{DELAY}: a delay of {int(delays.max())} commits actions, and committed is missing "
+            if hi or lo:
+                raise ValueError(f"{DELAY}: a delay of {hi if hi else lo} commits actions, and committed is missing "
                                  f"(expected the previous chunk's actions [{b}, L, {d}])")
             return np.zeros((b, m, d), dtype=np.float32), delays
         arr = np.asarray(committed)
         if arr.dtype.kind != "f" or arr.ndim != 3 or arr.shape[0] != b or arr.shape[2] != d or not 1 <= arr.shape[1] <= h:
             raise ValueError(f"committed: expected float32 values of shape [{b}, L <= {h}, {d}] (the previous chunk's "
                              f"actions from this chunk's first step on), got dtype {arr.dtype}, shape {list(arr.shape)}")
-        if delays.min() < 0 or delays.max() > min(m, arr.shape[1]):
+        if lo < 0 or hi > min(m, arr.shape[1]):
             raise ValueError(f"{DELAY}: expected values in 0..{min(m, arr.shape[1])} (this file's rtc_max_delay={m}, "
                              f"committed's {arr.shape[1]} rows), got {delays.tolist()}")
-        arr = np.ascontiguousarray(arr[:, :m], dtype=np.float32)
+        arr = arr[:, :m]
+        if arr.dtype != np.float32 or not arr.flags.c_contiguous:
+            arr = np.ascontiguousarray(arr, dtype=np.float32)
         if not np.isfinite(arr).all():
             raise ValueError(f"committed: contains NaN or Inf (shape {list(arr.shape)})")
         if arr.shape[1] < m:

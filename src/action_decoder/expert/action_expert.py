@@ -139,7 +139,7 @@ class ActionExpert(nn.Module):
             emb_t, emb_r = self.t_embed(torch.cat([t, one])), self.r_embed(torch.cat([r, one]))   # [2B, hidden] each
             t_tok, r_tok = emb_t[:b], emb_r[:b]
             shift = emb_t[b:] + emb_r[b:] - t_tok - r_tok                         # [B, hidden]
-            actions = actions + clean_rows[..., None].to(shift.dtype) * shift[:, None]
+            actions = torch.where(clean_rows[..., None], actions + shift[:, None], actions)
         elif t.dim() == 1 and r.dim() == 1:
             t_tok, r_tok = self.t_embed(t), self.r_embed(r)                       # [B, hidden] each
         else:
