@@ -209,6 +209,10 @@ def test_trained_rtc_graph_is_sample_with_the_committed_prefix(decoder, kw, tmp_
     one = runner.predict_action_chunk(state[:1].numpy(), noise[:1].numpy(), committed=prev[:1, :2].numpy(),
                                       delay=np.int64(2))                 # another batch size, a numpy integer
     assert one.shape == (1, 8, 3) and np.abs(one[0] - same[0]).max() <= TOL
+    with torch.no_grad():
+        eager = policy.sample({"state": state[:1]}, noise=noise[:1], prev_chunk=prev[:1, :2], delay=2,
+                              rtc_mode="trained").actions
+    assert np.abs(one - eager.numpy()).max() <= TOL                       # against eager PyTorch
 
 
 @pytest.mark.filterwarnings("ignore:sampler='euler' on a mean_flow decoder")

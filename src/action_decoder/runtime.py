@@ -172,8 +172,8 @@ class OnnxPolicy:
             delays = np.broadcast_to(delays, (b,)).astype(np.int64)
             lo, hi = int(delays.min()), int(delays.max())
         if committed is None:
-            if hi or lo:
-                raise ValueError(f"{DELAY}: a delay of {hi if hi else lo} commits actions, and committed is missing "
+            if lo or hi:
+                raise ValueError(f"{DELAY}: a delay of {hi or lo} commits actions, and committed is missing "
                                  f"(expected the previous chunk's actions [{b}, L, {d}])")
             return np.zeros((b, m, d), dtype=np.float32), delays
         arr = np.asarray(committed)
