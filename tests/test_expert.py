@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
@@ -107,6 +109,28 @@ def test_time_features_vary_over_unit_interval():
     feats = sinusoidal_features(torch.tensor([0.0, 0.05, 0.5, 1.0]), 64, *TIME_PERIODS)
     cos = torch.nn.functional.cosine_similarity(feats[:, None], feats[None], dim=-1)
     assert cos[0, 1] < 0.9 and cos[0, 3] < 0.5 and cos[2, 3] < 0.5
+
+
+def test_time_embedding_frequencies_are_built_once_and_stay_float32():
+    """The cached frequencies give the same features as building them per call, bit for bit; they stay
+    float32 on `.half()` / `.to(bfloat16)` and out of the state dict; float64 times get float64 ones."""
+    from action_decoder.expert.embeddings import ScalarEmbedding
+
+    emb = ScalarEmbedding(32, TIME_PERIODS)
+    x = torch.rand(7)
+    fresh = sinusoidal_features(x, 32, *TIME_PERIODS)                      # built on this call
+    torch.testing.assert_close(emb.features(x), fresh, rtol=0, atol=0)
+    assert "freqs" not in emb.state_dict()
+    for dtype in (torch.float16, torch.bfloat16):
+        moved = ScalarEmbedding(32, TIME_PERIODS).to(dtype)
+        assert moved.freqs.dtype == torch.float32 and moved.mlp[0].weight.dtype == dtype
+        torch.testing.assert_close(moved.features(x.to(dtype)), sinusoidal_features(x.to(dtype), 32, *TIME_PERIODS),
+                                   rtol=0, atol=0)
+    x64 = torch.rand(5, dtype=torch.float64)
+    period = TIME_PERIODS[0] * (TIME_PERIODS[1] / TIME_PERIODS[0]) ** (torch.arange(16, dtype=torch.float64) / 15)
+    angle = x64[:, None] * 2 * math.pi / period                           # independent float64 oracle
+    torch.testing.assert_close(emb.double().features(x64), torch.cat([angle.sin(), angle.cos()], -1),
+                               rtol=1e-12, atol=1e-12)
 
 
 # ------------------------------------------------------------------ 2. forward-mode AD

@@ -301,6 +301,19 @@ def test_bad_batches_name_the_key(bad, key):
         policy(batch(actions=False))
 
 
+def test_a_single_nan_or_opposite_infs_are_refused_and_huge_finite_inputs_are_not():
+    """The finiteness check sums first: one NaN, or +Inf and −Inf (a NaN sum), must still be caught, and
+    finite values whose float32 sum overflows must still pass."""
+    policy = make("flow_matching")
+    for value in ([float("nan")], [float("inf"), -float("inf")]):
+        state = torch.zeros(6, 5)
+        state[2, 1:1 + len(value)] = torch.tensor(value)
+        with pytest.raises(ValueError, match=r"^batch\['state'\]: contains NaN or Inf"):
+            policy.sample(batch(actions=False) | {"state": state})
+    huge = torch.full((6, 5), 3e38)                      # finite; the sum is +Inf in float32
+    assert policy.sample(batch(actions=False) | {"state": huge}).actions.isfinite().all()
+
+
 @pytest.mark.parametrize("mode", ["churn", "explore"])
 def test_meanflow_sde_takes_its_own_steps_not_the_one_step_of_meanflow(mode):
     # A MeanFlow config samples its ODE in 1 step; one Euler–Maruyama step from noise would give

@@ -8,6 +8,7 @@ network knows nothing of sampling; the samplers know nothing of the network.
 from __future__ import annotations
 
 import json
+import math
 import numbers
 import re
 import warnings
@@ -784,7 +785,9 @@ def _tensor(batch: Mapping[str, Any], key: str, shape: str) -> Tensor:
 
 
 def _finite(x: Tensor, key: str) -> None:
-    if not torch.isfinite(x).all():
+    # A NaN or an Inf makes the sum non-finite, so a finite sum clears x in one reduction; a non-finite sum
+    # (or an overflowing one) is settled element by element.
+    if not math.isfinite(x.sum().item()) and not torch.isfinite(x).all():
         raise ValueError(f"batch[{key!r}]: contains NaN or Inf (shape {list(x.shape)})")
 
 
