@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from unittest import mock
 
 import pytest
 import torch
@@ -131,6 +132,25 @@ def test_time_embedding_frequencies_are_built_once_and_stay_float32():
     angle = x64[:, None] * 2 * math.pi / period                           # independent float64 oracle
     torch.testing.assert_close(emb.double().features(x64), torch.cat([angle.sin(), angle.cos()], -1),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_rotary_table_is_the_per_call_table_and_longer_chunks_build_their_own():
+    """The expert's stored rotary table gives the outputs of the table built per call, bit for bit, for its
+    own length and for a longer chunk; it stays float32 under `.to(bfloat16)` and out of the state dict."""
+    from action_decoder.expert.attention import rotary_cos_sin
+
+    expert = make_expert()
+    x, t, r, state, _ = inputs()
+    assert not any(k.startswith("rotary") for k in expert.state_dict())
+    cos, sin = rotary_cos_sin(expert.rotary.cos.shape[0], expert.head_dim, expert.config.rope_theta,
+                              torch.device("cpu"), torch.float32)
+    torch.testing.assert_close((expert.rotary.cos, expert.rotary.sin), (cos, sin), rtol=0, atol=0)
+    for chunk in (x, torch.cat([x, x], 1)):              # a longer chunk than the config's: built per call
+        want = expert(chunk, t, r, state)
+        with mock.patch.object(expert.rotary, "table", lambda n, device, dtype:
+                               rotary_cos_sin(n, expert.head_dim, expert.config.rope_theta, device, dtype)):
+            torch.testing.assert_close(expert(chunk, t, r, state), want, rtol=0, atol=0)
+    assert expert.to(torch.bfloat16).rotary.cos.dtype == torch.float32
 
 
 # ------------------------------------------------------------------ 2. forward-mode AD

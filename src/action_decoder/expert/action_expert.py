@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config import DecoderConfig
-from .attention import ATTN_IMPLEMENTATIONS, rotary_cos_sin
+from .attention import ATTN_IMPLEMENTATIONS, RotaryTable
 from .conditioning import ConditioningEncoder, Prefix
 from .image_encoder import ImageEncoder
 from .embeddings import FREQ_PERIODS, TIME_PERIODS, ScalarEmbedding
@@ -61,6 +61,8 @@ class ActionExpert(nn.Module):
                         config.rms_norm_eps) for _ in range(config.num_hidden_layers))
         self.norm = RMSNorm(hidden, config.rms_norm_eps)
         self.head = nn.Linear(hidden, config.action_dim)
+        # [t, r, f, s_1..s_n, a_1..a_H]: the rotary table of the config's own tokens (longer chunks build theirs).
+        self.rotary = RotaryTable(3 + n_obs + config.action_chunk_size, self.head_dim, config.rope_theta)
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -156,7 +158,7 @@ class ActionExpert(nn.Module):
             tokens = torch.cat([torch.stack([t_tok, r_tok, self.freq_embed(ctrl_freq)], dim=1),   # [B, 3, hidden]
                                 states, actions], dim=1)                          # [B, 3 + n + H, hidden]
         n = tokens.shape[1]
-        cos, sin = rotary_cos_sin(n, self.head_dim, self.config.rope_theta, x.device, dtype)
+        cos, sin = self.rotary.table(n, x.device, dtype)
         mask = None  # own tokens always see each other; only prefix keys may be masked
         if prefix is not None and not prefix.all_valid:
             own = torch.ones(b, n, dtype=torch.bool, device=x.device)

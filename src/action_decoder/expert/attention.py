@@ -13,6 +13,8 @@ import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .embeddings import Float32Buffers
+
 ATTN_IMPLEMENTATIONS = ("auto", "sdpa", "eager")
 
 
@@ -39,6 +41,27 @@ def rotary_cos_sin(n: int, head_dim: int, theta: float, device: torch.device,
     angle = torch.arange(n, device=device, dtype=dtype)[:, None] * inv_freq[None, :]
     angle = torch.cat([angle, angle], dim=-1)                                   # [n, head_dim]
     return angle.cos(), angle.sin()
+
+
+class RotaryTable(Float32Buffers):
+    """`rotary_cos_sin` for positions 0..length-1, built once: `table(n, device, dtype)` slices it, and builds
+    longer or float64 tables per call."""
+
+    float32_buffers = ("cos", "sin")
+
+    def __init__(self, length: int, head_dim: int, theta: float) -> None:
+        super().__init__()
+        self.head_dim, self.theta = head_dim, theta
+        cos, sin = rotary_cos_sin(length, head_dim, theta, torch.device("cpu"), torch.float32)   # [length, head_dim]
+        self.register_buffer("cos", cos, persistent=False)
+        self.register_buffer("sin", sin, persistent=False)
+
+    def table(self, n: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """cos, sin [n, head_dim] as `rotary_cos_sin(n, head_dim, theta, device, dtype)`."""
+        if n <= self.cos.shape[0] and torch.promote_types(dtype, torch.float32) == self.cos.dtype \
+                and self.cos.device == device:
+            return self.cos[:n], self.sin[:n]
+        return rotary_cos_sin(n, self.head_dim, self.theta, device, dtype)
 
 
 def apply_rotary(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:

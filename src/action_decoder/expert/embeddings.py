@@ -39,8 +39,24 @@ def sinusoidal_features(x: Tensor, dim: int, min_period: float, max_period: floa
     return torch.cat([torch.sin(angle), torch.cos(angle)], dim=-1)
 
 
-class ScalarEmbedding(nn.Module):
+class Float32Buffers(nn.Module):
+    """A module whose buffers named in `float32_buffers` (tables derived from the config, not saved) follow
+    the device it is moved to but stay float32 whatever dtype it is cast to."""
+
+    float32_buffers: tuple[str, ...] = ()
+
+    def _apply(self, fn, recurse=True):
+        kept = {name: self._buffers.pop(name) for name in self.float32_buffers}
+        super()._apply(fn, recurse)
+        for name, buf in kept.items():
+            self._buffers[name] = buf.to(device=fn(buf).device)
+        return self
+
+
+class ScalarEmbedding(Float32Buffers):
     """A per-sample scalar -> one hidden-size token: sinusoidal features, then an MLP."""
+
+    float32_buffers = ("freqs",)
 
     def __init__(self, hidden_size: int, periods: tuple[float, float]) -> None:
         super().__init__()
@@ -48,15 +64,8 @@ class ScalarEmbedding(nn.Module):
         self.min_period, self.max_period = periods
         self.mlp = nn.Sequential(nn.Linear(hidden_size, hidden_size), nn.SiLU(),
                                  nn.Linear(hidden_size, hidden_size))
-        # float32 whatever dtype the module is moved to (`_apply`), not saved: the features' frequencies
-        # are a function of the periods, built once instead of on every call.
+        # The features' frequencies, a function of the periods: built once instead of on every call.
         self.register_buffer("freqs", angular_frequencies(hidden_size, *periods), persistent=False)
-
-    def _apply(self, fn, recurse=True):
-        freqs = self._buffers.pop("freqs")
-        super()._apply(fn, recurse)
-        self._buffers["freqs"] = freqs.to(device=fn(freqs).device)              # follow the device, stay float32
-        return self
 
     def forward(self, x: Tensor) -> Tensor:
         """[B] -> [B, hidden_size] in the MLP's dtype."""
