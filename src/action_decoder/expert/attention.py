@@ -60,7 +60,7 @@ class RotaryTable(Float32Buffers):
         """cos, sin [n, head_dim] as `rotary_cos_sin(n, head_dim, theta, device, dtype)`."""
         if n <= self.cos.shape[0] and torch.promote_types(dtype, torch.float32) == self.cos.dtype \
                 and self.cos.device == device:
-            return self.cos[:n], self.sin[:n]
+            return (self.cos, self.sin) if n == self.cos.shape[0] else (self.cos[:n], self.sin[:n])
         return rotary_cos_sin(n, self.head_dim, self.theta, device, dtype)
 
 
