@@ -16,7 +16,21 @@ SPREAD_FLOOR = 1e-2
 ACTION_CONSTANT_BELOW = 1e-6
 
 
-class Normalizer(nn.Module):
+class Float32Buffers(nn.Module):
+    """A module whose buffers named in `float32_buffers` (data statistics, tables derived from the config)
+    follow the device it is moved to but stay float32 whatever dtype it is cast to."""
+
+    float32_buffers: tuple[str, ...] = ()
+
+    def _apply(self, fn, recurse=True):
+        kept = {name: self._buffers.pop(name) for name in self.float32_buffers}
+        super()._apply(fn, recurse)
+        for name, buf in kept.items():
+            self._buffers[name] = buf.to(device=fn(buf).device)
+        return self
+
+
+class Normalizer(Float32Buffers):
     """Maps one feature to and from the network's units.
 
     mean_std: (x − mean)/std;  min_max: to [−1, 1] by 2·(x − min)/(max − min) − 1;
@@ -28,6 +42,8 @@ class Normalizer(nn.Module):
     replaced by `SPREAD_FLOOR`. The statistics stay float32 whatever dtype the policy is moved to
     (`.half()`, `.to(torch.bfloat16)`): rounding a mean of 250.3 to bf16 would shift every input.
     """
+
+    float32_buffers = STAT_NAMES        # follow the policy's device, never its dtype
 
     def __init__(self, name: str, dim: int, mode: str, constant_below: float = SPREAD_FLOOR):
         super().__init__()
@@ -57,13 +73,6 @@ class Normalizer(nn.Module):
                              f"{values['min'].tolist()} and max {values['max'].tolist()}")
         for key, value in values.items():
             getattr(self, key).copy_(value)
-
-    def _apply(self, fn, recurse=True):
-        # Follow the policy's device, never its dtype (see the class docstring).
-        for key, buf in self._buffers.items():
-            if buf is not None:
-                self._buffers[key] = buf.to(device=fn(buf).device, dtype=torch.float32)
-        return self
 
     def _scale_shift(self):
         if self.mode == "mean_std":

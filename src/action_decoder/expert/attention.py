@@ -13,7 +13,7 @@ import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .embeddings import Float32Buffers
+from ..normalize import Float32Buffers
 
 ATTN_IMPLEMENTATIONS = ("auto", "sdpa", "eager")
 

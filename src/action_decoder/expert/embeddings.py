@@ -14,6 +14,8 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from ..normalize import Float32Buffers
+
 TIME_PERIODS = (4e-3, 4.0)
 FREQ_PERIODS = (1.0, 1e4)
 
@@ -37,20 +39,6 @@ def sinusoidal_features(x: Tensor, dim: int, min_period: float, max_period: floa
         freqs = angular_frequencies(dim, min_period, max_period, dtype, x.device)
     angle = x.to(dtype)[:, None] * freqs[None, :]                              # [B, dim/2]
     return torch.cat([torch.sin(angle), torch.cos(angle)], dim=-1)
-
-
-class Float32Buffers(nn.Module):
-    """A module whose buffers named in `float32_buffers` (tables derived from the config, not saved) follow
-    the device it is moved to but stay float32 whatever dtype it is cast to."""
-
-    float32_buffers: tuple[str, ...] = ()
-
-    def _apply(self, fn, recurse=True):
-        kept = {name: self._buffers.pop(name) for name in self.float32_buffers}
-        super()._apply(fn, recurse)
-        for name, buf in kept.items():
-            self._buffers[name] = buf.to(device=fn(buf).device)
-        return self
 
 
 class ScalarEmbedding(Float32Buffers):
