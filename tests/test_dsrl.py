@@ -16,7 +16,8 @@ from torch.distributions import AffineTransform, Normal, TanhTransform, Transfor
 from action_decoder import ActionDecoderPolicy, DecoderConfig
 from action_decoder.cli import main
 from action_decoder.noise_actor import NoiseActor, kl_to_prior
-from action_decoder.rl.dsrl import alias_mode, decode, decode_pool, dsrl_policy, dsrl_update, noise_actor_fn
+from action_decoder.rl.dsrl import (KLMultiplier, alias_mode, decode, decode_pool, dsrl_policy, dsrl_update,
+                                   noise_actor_fn)
 from action_decoder.rl.sac import ReplayBuffer, Temperature, make_target
 from action_decoder.rl.critics import QEnsemble, TwinQ, subset_min
 
@@ -251,6 +252,47 @@ def test_actor_climbs_an_oracle_critic():
     assert before > 0.7 and after < 0.1
 
 
+def test_kl_multiplier_rises_while_the_kl_is_above_its_target_and_falls_below():
+    m = KLMultiplier(target=0.5, initial=1.0)
+    opt = torch.optim.SGD(m.parameters(), lr=0.1)
+    for kl, direction in ((torch.full((4,), 2.0), 1), (torch.full((4,), 0.1), -1)):
+        before = float(m.value)
+        opt.zero_grad()
+        m.loss(kl).backward()
+        opt.step()
+        assert math.isclose(math.log(float(m.value)) - math.log(before), direction * 0.1 * abs(float(kl[0]) - 0.5),
+                            rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("kl_target", [None, 0.5])
+def test_trust_region_holds_the_actor_near_the_prior_that_an_oracle_critic_pulls_it_from(kl_target):
+    """Q(s, w) = −|w − 2|²: without a trust region the actor's KL to N(0, I) heads for that of a mean at 2
+    (about 2 per element); `KLMultiplier` holds it at its target."""
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup()
+
+    class Oracle(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.unused = torch.nn.Parameter(torch.zeros(()))
+
+        def forward(self, state, progress, w):
+            q = -(w - 2.0).square().sum((-2, -1)) + 0 * self.unused
+            return q, q
+
+    critics = {"q": Oracle(), "q_target": Oracle()}
+    opts["q"] = torch.optim.SGD(critics["q"].parameters(), lr=0.0)
+    multiplier = None if kl_target is None else KLMultiplier(kl_target)
+    if multiplier is not None:
+        opts["kl"] = torch.optim.Adam(multiplier.parameters(), lr=0.1)
+    runs = [dsrl_update(policy, critics, temperature, opts, buffer, lambda s: {"state": s}, cfg, gen,
+                        multiplier=multiplier) for _ in range(400)]
+    kl = sum(r["kl_prior"] for r in runs[-50:]) / 50
+    if kl_target is None:
+        assert kl > 1.5 and "kl_multiplier" not in runs[-1]
+    else:
+        assert abs(kl - kl_target) < 0.15 and runs[-1]["kl_multiplier"] > 1.0
+
+
 def test_replay_buffer_wraps_round_trips_and_checks_fields():
     buf = ReplayBuffer(5)
     rows = lambda a, b: {"state": torch.arange(a, b).float()[:, None], "noise": torch.zeros(b - a, 2)}  # noqa: E731
@@ -271,11 +313,11 @@ def _run(ckpt, out, *extra):
                  "--checkpoint-every", "1", "--noise-hidden", "16", *extra])
 
 
-@pytest.mark.parametrize("alias", ["update", "iteration"])
-def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alias):
+@pytest.mark.parametrize("alias,trust", [("update", ()), ("iteration", ()), ("update", ("--kl-target", "0.5"))])
+def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alias, trust):
     ckpt = tmp_path / "bc"
     _bc().save_pretrained(ckpt)
-    opt = ("--alias-decodes", alias)
+    opt = ("--alias-decodes", alias, *trust)
     assert _run(ckpt, tmp_path / "whole", "--env-steps", "72", *opt) == 0
     assert _run(ckpt, tmp_path / "cut", "--env-steps", "48", *opt) == 0
     assert _run(ckpt, tmp_path / "cut", "--env-steps", "72", "--resume", *opt) == 0
@@ -286,6 +328,7 @@ def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alia
     strip = lambda hs: [{k: v for k, v in h.items() if k not in ("wall_s", "cpu_s", "rollout_cpu_s")} for h in hs]  # noqa: E731
     assert strip(logs[0]) == strip(logs[1]) and logs[0][-1]["updates"] == 2 * logs[0][-1]["decisions"]
     assert 0 <= logs[0][-1]["return_to_go"] <= 12 / 2     # dense rewards ≤ 1 a decision, 6 decisions of 2 steps
+    assert ("kl_multiplier" in logs[0][-1]) == bool(trust)
     # the decoder's weights are the BC policy's; the noise actor moved
     bc = ActionDecoderPolicy.from_pretrained(ckpt)
     assert all(torch.equal(bc.state_dict()[k], v) for k, v in whole.state_dict().items() if k in bc.state_dict())
@@ -322,9 +365,15 @@ def test_dsrl_refuses_bad_options_in_one_line(tmp_path, capsys):
                         (["--group-size", "2"], "--group-size: only with --algo ppo"),
                         (["--buffer-size", "2"], "--buffer-size: expected at least --sac-batch-size"),
                         (["--target-entropy", "nan"], "--target-entropy: expected a finite number"),
-                        (["--critics", "1"], "--critics: expected an ensemble of at least 2 members")):
+                        (["--critics", "1"], "--critics: expected an ensemble of at least 2 members"),
+                        (["--kl-target", "0"], "--kl-target: expected a positive finite KL per noise element"),
+                        (["--kl-target", "inf"], "--kl-target: expected a positive finite KL per noise element"),
+                        (["--kl-target", "1", "--kl-coef", "0.5"], "--kl-target: the trust region's weight is learnt")):
         assert _run(ckpt, tmp_path / "x", "--env-steps", "24", *args) == 2
         assert words in capsys.readouterr().err
+    assert main(["finetune", "--checkpoint", str(ckpt), "--output-dir", str(tmp_path / "p"), "--algo", "ppo",
+                 "--kl-target", "1"]) == 2
+    assert "--kl-target: only with --algo dsrl" in capsys.readouterr().err
 
 
 def test_plugin_config_carries_the_noise_actor():

@@ -25,8 +25,10 @@ drawn at random (REDQ, arXiv 2101.05982; with two members, the twin minimum), an
 the ensemble's mean when it has more than two members, the twin minimum otherwise.
 
 The actor maximises that Q(s, w) − α·log π(w | s) (log-probs per noise element, α tuned to hold
-the entropy per element at a target), plus an optional trust region `kl_coef`·KL(π(·|s) ‖ N(0, I))
-that keeps its Gaussian near the noise the decoder was trained on.
+the entropy per element at a target), minus an optional trust region λ·KL(π(·|s) ‖ N(0, I)) that
+keeps its Gaussian near the noise the decoder was trained on: a fixed weight λ = `kl_coef`, or a
+Lagrange multiplier (`KLMultiplier`, LP-DS, arXiv 2606.01151) learnt so that the KL per element
+stays at most `kl_target`.
 """
 
 from __future__ import annotations
@@ -45,8 +47,28 @@ from .sac import ReplayBuffer, Temperature
 
 PRIOR_PAIRS = 2
 """alias_decodes="iteration": prior noises N(0, I) (bounded) decoded per decision when the rollout acts."""
+KL_MULTIPLIER_LR = 3e-2
+"""Learning rate of the trust region's log multiplier (`KLMultiplier`), as SAC's log α."""
 POOL_SIZE = 4096
 """alias_decodes="iteration": buffer transitions whose next noise is decoded once an iteration."""
+
+
+class KLMultiplier(torch.nn.Module):
+    """λ = exp(log λ) ≥ 0 of the trust region KL(π(·|s) ‖ N(0, I)) ≤ `target` (per noise element): gradient
+    steps on its Lagrangian raise λ while the actor's KL is above the target and lower it below."""
+
+    def __init__(self, target: float, initial: float = 1.0):
+        super().__init__()
+        self.log_lambda = torch.nn.Parameter(torch.tensor(float(initial)).log())
+        self.register_buffer("target", torch.tensor(float(target)))
+
+    @property
+    def value(self) -> Tensor:
+        return self.log_lambda.exp().detach()
+
+    def loss(self, kl: Tensor) -> Tensor:
+        """−log λ·(KL − target), KL the batch's mean per element (detached)."""
+        return -self.log_lambda * (kl.detach().mean() - self.target)
 
 
 def alias_mode(policy: ActionDecoderPolicy, requested: str) -> str:
@@ -148,8 +170,9 @@ def _polyak(q, q_target, tau: float) -> None:
 
 def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Temperature, optimizers: dict,
                 buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator,
-                pool: Optional[dict] = None) -> dict:
-    """One critic, actor and temperature step on a replay batch.
+                pool: Optional[dict] = None, multiplier: Optional[KLMultiplier] = None) -> dict:
+    """One critic, actor and temperature step on a replay batch (and a step of the trust region's
+    `multiplier`, with its optimizer "kl", when given; otherwise `cfg.kl_coef` weighs the KL).
 
     `critics`: {"q": Q(s, w), "q_target"} and, with `cfg.noise_critic == "action"`, {"q_action":
     Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action"). `pool`:
@@ -215,8 +238,9 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
     q_pi = subset_min(qs, 2, generator) if len(qs) == 2 else torch.stack(qs).mean(0)   # REDQ: the ensemble's mean
     loss = (alpha * logp - q_pi).mean()
     kl = kl_to_prior(mean, log_std)                                                   # [B]
-    if cfg.kl_coef > 0:
-        loss = loss + cfg.kl_coef * kl.mean()
+    kl_weight = multiplier.value if multiplier is not None else cfg.kl_coef
+    if kl_weight > 0:
+        loss = loss + kl_weight * kl.mean()
     optimizers["actor"].zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
@@ -225,6 +249,11 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
         optimizers["alpha"].zero_grad(set_to_none=True)
         temperature.loss(logp).backward()
         optimizers["alpha"].step()
+    if multiplier is not None:
+        optimizers["kl"].zero_grad(set_to_none=True)
+        multiplier.loss(kl).backward()
+        optimizers["kl"].step()
+        stats["kl_multiplier"] = float(kl_weight)
     if cfg.noise_critic == "noise":
         _polyak(q, q_target, cfg.tau)
     stats.update({"q": float(q_pi.detach().mean()), "entropy_per_dim": float(-logp.detach().mean()),

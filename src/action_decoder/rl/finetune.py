@@ -37,7 +37,8 @@ from ..run_dir import (CKPT_DIR, FINAL, _rng_state, _set_rng_state, existing_run
 from ..tracking import RunLogger, require_wandb
 from ..train import task_context
 from .critics import QEnsemble, TwinQ, ValueNet
-from .dsrl import POOL_SIZE, PRIOR_PAIRS, alias_mode, decode_pool, dsrl_policy, dsrl_update, noise_actor_fn
+from .dsrl import (KL_MULTIPLIER_LR, POOL_SIZE, PRIOR_PAIRS, KLMultiplier, alias_mode, decode_pool, dsrl_policy,
+                   dsrl_update, noise_actor_fn)
 from .ppo import gae, group_advantages, k3_kl, ppo_update, trained_slice
 from .rollout import collect
 from .sac import ReplayBuffer, Temperature, make_target, sac_update
@@ -134,6 +135,8 @@ class FinetuneConfig:
     """PPO: weight of the value loss."""
     kl_coef: float = 0.0
     """Weight of KL(π_θ ‖ π_BC) on the chains; DSRL: of the noise actor's KL to N(0, I) per element (0: off)."""
+    kl_target: Optional[float] = None
+    """dsrl: trust region: a learnt multiplier holds the noise actor's KL to N(0, I) at most this, in nats per element (None: off)."""
     critic_warmup_iters: Optional[int] = None
     """PPO with the critic (--group-size 1): iterations that train only the value head (None: 1)."""
     ratio_tol: float = 1e-4
@@ -249,6 +252,14 @@ def _check(cfg: FinetuneConfig) -> None:
     if cfg.algo != "ppo" and cfg.buffer_size < cfg.sac_batch_size:
         raise ValueError(f"--buffer-size: expected at least --sac-batch-size ({cfg.sac_batch_size}) transitions, or "
                          f"{cfg.algo.upper()} never updates; got {cfg.buffer_size}")
+    if cfg.kl_target is not None:
+        if cfg.algo != "dsrl":
+            raise ValueError(f"--kl-target: only with --algo dsrl (the noise actor's KL to N(0, I)), got --algo {cfg.algo}")
+        if not (math.isfinite(cfg.kl_target) and cfg.kl_target > 0):
+            raise ValueError(f"--kl-target: expected a positive finite KL per noise element in nats, got {cfg.kl_target}")
+        if cfg.kl_coef > 0:
+            raise ValueError(f"--kl-target: the trust region's weight is learnt; drop --kl-coef {cfg.kl_coef} "
+                             f"(a fixed weight) or --kl-target")
     if cfg.target_entropy is not None and not math.isfinite(cfg.target_entropy):
         raise ValueError(f"--target-entropy: expected a finite number, got {cfg.target_entropy}")
     if cfg.max_episode_steps > 500:
@@ -460,7 +471,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
     sigma_params = list(policy.sigma.parameters())
     groups = [{"params": list(policy.model.parameters()), "lr": cfg.lr}]
     groups += [{"params": sigma_params, "lr": cfg.sigma_lr}] if sigma_params else []
-    buffer, critics = None, {}
+    buffer, critics, multiplier = None, {}, None
     if dsrl:
         critic = QEnsemble(state_dim, policy.config.action_chunk_size * policy.config.action_dim,  # Q(s, w)
                            cfg.critics)
@@ -469,6 +480,9 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         optimizers = {"actor": torch.optim.Adam(policy.noise_actor.parameters(), lr=cfg.noise_lr),
                       "q": torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr),
                       "alpha": torch.optim.Adam(temperature.parameters(), lr=cfg.alpha_lr)}
+        if cfg.kl_target is not None:
+            multiplier = KLMultiplier(cfg.kl_target)
+            optimizers["kl"] = torch.optim.Adam(multiplier.parameters(), lr=KL_MULTIPLIER_LR)
         alias = alias_mode(policy, cfg.alias_decodes) if cfg.noise_critic == "action" else None
         if alias is not None:
             q_action = QEnsemble(state_dim, n_exec * policy.config.action_dim, cfg.critics)        # Q_A(s, a)
@@ -498,6 +512,9 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
             raise ValueError(f"--checkpoint: {cfg.checkpoint} holds other BC weights than the ones the run in {out} "
                              f"started from (its KL reference and initial policy); resume with that BC checkpoint")
         _check_resumed_config(st.get("config"), cfg, ckpt)
+        if multiplier is not None and "kl_multiplier" not in st:
+            raise ValueError(f"--kl-target: the run in {out} was started without a trust region; resume it without "
+                             f"--kl-target, or start a new run in another --output-dir")
         policy.load_state_dict(ActionDecoderPolicy.from_pretrained(ckpt).state_dict())
         critic.load_state_dict(st["critic"])
         for k, opt in optimizers.items():
@@ -508,6 +525,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
             if not dsrl:
                 q_target.load_state_dict(st["q_target"])
             temperature.load_state_dict(st["temperature"])
+            if multiplier is not None:
+                multiplier.load_state_dict(st["kl_multiplier"])
             buffer.load_state_dict(st["buffer"])
         gen.set_state(st["gen"])
         _set_rng_state(st["rng"])
@@ -594,6 +613,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                          **({} if dsrl else {"q_target": q_target.state_dict()}))
         if critics:
             state["critics"] = {k: net.state_dict() for k, net in critics.items()}
+        if multiplier is not None:
+            state["kl_multiplier"] = multiplier.state_dict()
         if partial is not None:          # a SAC or DSRL iteration paused between its updates
             state["pending"] = {**partial, "cpu_s": time.process_time() - cpu0}
         last_save["cpu"] = time.process_time()
@@ -686,7 +707,8 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                     break
                 if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
                     save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates, "pool": pool})  # long iteration
-                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, pool)
+                runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, pool,
+                                        multiplier)
                             if dsrl
                             else sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
                                             make_batch, cfg, gen))
