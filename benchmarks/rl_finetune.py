@@ -215,8 +215,8 @@ def recipe(config: dict) -> str:
                                                 algo=config.get("algo", "ppo")))
     if group != episodes_per_layout(SimpleNamespace(group_size=None, algo=config.get("algo", "ppo"))):
         config["group_size"] = group
-    warmup = config.pop("critic_warmup_iters", None)      # acts only with the critic (group size 1); None = 1
-    if group == 1 and warmup not in (None, 1):
+    warmup = config.pop("critic_warmup_iters", None)      # acts only with a critic (group size 1); None = 1, dsrl 0
+    if group == 1 and warmup not in (None, 0 if config.get("algo") == "dsrl" else 1):
         config["critic_warmup_iters"] = warmup
     changed = [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                for k, v in sorted(config.items()) if k in base and v != base[k]]

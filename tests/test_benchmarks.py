@@ -330,6 +330,10 @@ def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
     assert rl_finetune.recipe({"critic_warmup_iters": None, "group_size": 1}) == \
         rl_finetune.recipe({"critic_warmup_iters": 1, "group_size": 1}) == "group_size=1"
     assert rl_finetune.recipe({"critic_warmup_iters": 3, "group_size": 1}) == "critic_warmup_iters=3, group_size=1"
+    # DSRL plays one episode a layout and warms up for 0 iterations by default
+    assert rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": None}) == \
+        rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": 0}) == "defaults"
+    assert rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": 1}) == "critic_warmup_iters=1"
 
 
 def test_rl_early_phase_reads_the_first_iterations_of_a_run(monkeypatch, tmp_path):

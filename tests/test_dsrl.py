@@ -293,6 +293,27 @@ def test_trust_region_holds_the_actor_near_the_prior_that_an_oracle_critic_pulls
         assert abs(kl - kl_target) < 0.15 and runs[-1]["kl_multiplier"] > 1.0
 
 
+def test_a_warm_up_update_steps_the_critics_and_leaves_the_actor_alpha_and_multiplier():
+    policy, critics, temperature, opts, buffer, cfg, gen = _setup("action")
+    cfg.alpha_lr = 0.1
+    opts["alpha"] = torch.optim.Adam(temperature.parameters(), lr=0.1)
+    multiplier = KLMultiplier(0.5)
+    opts["kl"] = torch.optim.Adam(multiplier.parameters(), lr=0.1)
+    snap = lambda m: [p.detach().clone() for p in m.parameters()]               # noqa: E731
+    kept = [snap(m) for m in (policy.noise_actor, temperature, multiplier)]
+    moved = [snap(critics[k]) for k in ("q", "q_action")]
+    stats = dsrl_update(policy, critics, temperature, opts, buffer, lambda s: {"state": s}, cfg, gen,
+                        multiplier=multiplier, update_actor=False)
+    for m, before in zip((policy.noise_actor, temperature, multiplier), kept):
+        assert all(torch.equal(a, b) for a, b in zip(m.parameters(), before))
+    for k, before in zip(("q", "q_action"), moved):
+        assert not all(torch.equal(a, b) for a, b in zip(critics[k].parameters(), before))
+    assert {"q", "kl_prior", "entropy_per_dim", "kl_multiplier"} <= set(stats)
+    dsrl_update(policy, critics, temperature, opts, buffer, lambda s: {"state": s}, cfg, gen, multiplier=multiplier)
+    for m, before in zip((policy.noise_actor, temperature, multiplier), kept):
+        assert not all(torch.equal(a, b) for a, b in zip(m.parameters(), before))
+
+
 def test_replay_buffer_wraps_round_trips_and_checks_fields():
     buf = ReplayBuffer(5)
     rows = lambda a, b: {"state": torch.arange(a, b).float()[:, None], "noise": torch.zeros(b - a, 2)}  # noqa: E731
@@ -339,6 +360,19 @@ def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alia
     # a DSRL checkpoint is not a BC checkpoint to start from
     assert _run(tmp_path / "whole" / "final", tmp_path / "again", "--env-steps", "24") == 2
     assert "already has a noise actor" in capsys.readouterr().err
+
+
+def test_dsrl_critic_warm_up_keeps_the_untrained_actor_for_its_iterations(tmp_path):
+    ckpt = tmp_path / "bc"
+    _bc().save_pretrained(ckpt)
+    assert _run(ckpt, tmp_path / "w", "--env-steps", "24", "--critic-warmup-iters", "1") == 0
+    assert _run(ckpt, tmp_path / "w2", "--env-steps", "48", "--critic-warmup-iters", "1") == 0
+    start = dsrl_policy(ActionDecoderPolicy.from_pretrained(ckpt), hidden=16, bound=2.5, steps=None)
+    one, two = (ActionDecoderPolicy.from_pretrained(tmp_path / d / "final") for d in ("w", "w2"))
+    head = lambda p: p.noise_actor.head.weight                                   # noqa: E731
+    assert torch.equal(head(one), head(start)) and not torch.equal(head(two), head(start))
+    hist = json.loads((tmp_path / "w2" / "finetune_log.json").read_text())["history"]
+    assert [h["updates"] for h in hist] == [2 * h["decisions"] for h in hist]     # the critics step in both
 
 
 def test_dsrl_steers_a_ddpm_decoder_through_its_deterministic_solver():

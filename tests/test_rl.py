@@ -216,7 +216,10 @@ def test_finetune_rejects_ddpm_and_bad_arguments(tmp_path, capsys):
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--critic-warmup-iters",
                  "3"]) == 2
     err = capsys.readouterr().err
-    assert "--critic-warmup-iters: only with PPO's critic (--group-size 1)" in err and "got 3" in err
+    assert "--critic-warmup-iters: only with PPO's critic (--group-size 1) or --algo dsrl" in err and "got 3" in err
+    assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--algo", "sac",
+                 "--critic-warmup-iters", "3"]) == 2
+    assert "SAC (--algo sac, --group-size 1) have no critic-only phase" in capsys.readouterr().err
     assert main(["finetune", "--checkpoint", str(ok), "--output-dir", str(tmp_path / "o"), "--group-size", "1",
                  "--critic-warmup-iters", "-1"]) == 2
     assert "--critic-warmup-iters: expected >= 0, got -1" in capsys.readouterr().err

@@ -170,9 +170,12 @@ def _polyak(q, q_target, tau: float) -> None:
 
 def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Temperature, optimizers: dict,
                 buffer: ReplayBuffer, make_batch: Callable[[Tensor], dict], cfg, generator: torch.Generator,
-                pool: Optional[dict] = None, multiplier: Optional[KLMultiplier] = None) -> dict:
+                pool: Optional[dict] = None, multiplier: Optional[KLMultiplier] = None,
+                update_actor: bool = True) -> dict:
     """One critic, actor and temperature step on a replay batch (and a step of the trust region's
     `multiplier`, with its optimizer "kl", when given; otherwise `cfg.kl_coef` weighs the KL).
+    `update_actor=False` steps the critics only (a warm-up): the actor, α and the multiplier stay,
+    and the stats are those of the actor as it is.
 
     `critics`: {"q": Q(s, w), "q_target"} and, with `cfg.noise_critic == "action"`, {"q_action":
     Q_A(s, a), "q_action_target"}; `optimizers`: "q", "actor", "alpha" (and "q_action"). `pool`:
@@ -233,26 +236,29 @@ def dsrl_update(policy: ActionDecoderPolicy, critics: dict, temperature: Tempera
             target = subset_min(qa(s["state"], b["progress"], decode(policy, now, w)[:, :n]), 2, generator)
         stats["q_loss"] = _critic_step(q, optimizers["q"], (q(s["state"], b["progress"], w), target), cfg.grad_clip)
 
-    w, logp, mean, log_std = actor.sample(**s, generator=generator)                  # [B, H, D], [B]
-    qs = q(s["state"], b["progress"], w)
-    q_pi = subset_min(qs, 2, generator) if len(qs) == 2 else torch.stack(qs).mean(0)   # REDQ: the ensemble's mean
-    loss = (alpha * logp - q_pi).mean()
-    kl = kl_to_prior(mean, log_std)                                                   # [B]
-    kl_weight = multiplier.value if multiplier is not None else cfg.kl_coef
-    if kl_weight > 0:
-        loss = loss + kl_weight * kl.mean()
-    optimizers["actor"].zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
-    optimizers["actor"].step()
-    if cfg.alpha_lr > 0:
-        optimizers["alpha"].zero_grad(set_to_none=True)
-        temperature.loss(logp).backward()
-        optimizers["alpha"].step()
+    with torch.set_grad_enabled(update_actor):
+        w, logp, mean, log_std = actor.sample(**s, generator=generator)              # [B, H, D], [B]
+        qs = q(s["state"], b["progress"], w)
+        q_pi = subset_min(qs, 2, generator) if len(qs) == 2 else torch.stack(qs).mean(0)   # REDQ: the ensemble's mean
+        loss = (alpha * logp - q_pi).mean()
+        kl = kl_to_prior(mean, log_std)                                               # [B]
+        kl_weight = multiplier.value if multiplier is not None else cfg.kl_coef
+        if kl_weight > 0:
+            loss = loss + kl_weight * kl.mean()
+    if update_actor:
+        optimizers["actor"].zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip)
+        optimizers["actor"].step()
+        if cfg.alpha_lr > 0:
+            optimizers["alpha"].zero_grad(set_to_none=True)
+            temperature.loss(logp).backward()
+            optimizers["alpha"].step()
+        if multiplier is not None:
+            optimizers["kl"].zero_grad(set_to_none=True)
+            multiplier.loss(kl).backward()
+            optimizers["kl"].step()
     if multiplier is not None:
-        optimizers["kl"].zero_grad(set_to_none=True)
-        multiplier.loss(kl).backward()
-        optimizers["kl"].step()
         stats["kl_multiplier"] = float(kl_weight)
     if cfg.noise_critic == "noise":
         _polyak(q, q_target, cfg.tau)

@@ -138,7 +138,7 @@ class FinetuneConfig:
     kl_target: Optional[float] = None
     """dsrl: trust region: a learnt multiplier holds the noise actor's KL to N(0, I) at most this, in nats per element (None: off)."""
     critic_warmup_iters: Optional[int] = None
-    """PPO with the critic (--group-size 1): iterations that train only the value head (None: 1)."""
+    """Iterations that train only the critics: PPO's value head with --group-size 1 (None: 1); dsrl's Q (None: 0)."""
     ratio_tol: float = 1e-4
     """PPO: tolerated |ratio − 1| before the first update of an iteration, on top of float rounding (`ppo.rescore_rounding`)."""
     alpha: float = 0.01
@@ -270,10 +270,10 @@ def _check(cfg: FinetuneConfig) -> None:
     if cfg.critic_warmup_iters is not None:
         if cfg.critic_warmup_iters < 0:
             raise ValueError(f"--critic-warmup-iters: expected >= 0, got {cfg.critic_warmup_iters}")
-        if cfg.algo != "ppo" or episodes_per_layout(cfg) > 1:
-            raise ValueError(f"--critic-warmup-iters: only with PPO's critic (--group-size 1); SAC and group advantages "
-                             f"(--group-size {episodes_per_layout(cfg)}) do not use the value head, "
-                             f"got {cfg.critic_warmup_iters}")
+        if cfg.algo == "sac" or (cfg.algo == "ppo" and episodes_per_layout(cfg) > 1):
+            raise ValueError(f"--critic-warmup-iters: only with PPO's critic (--group-size 1) or --algo dsrl; "
+                             f"{'SAC' if cfg.algo == 'sac' else 'group advantages'} (--algo {cfg.algo}, --group-size "
+                             f"{episodes_per_layout(cfg)}) have no critic-only phase, got {cfg.critic_warmup_iters}")
     if cfg.num_envs % episodes_per_layout(cfg):
         raise ValueError(f"--group-size: expected a divisor of --num-envs={cfg.num_envs}, "
                          f"got {episodes_per_layout(cfg)}")
@@ -630,7 +630,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         raise KeyboardInterrupt
 
     group = episodes_per_layout(cfg)
-    critic_warmup = 1 if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
+    critic_warmup = (0 if dsrl else 1) if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
 
     def run_ends() -> bool:
         """At an iteration boundary: the env-step or CPU budget is spent, or cannot pay for the next rollout."""
@@ -708,7 +708,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
                 if cfg.checkpoint_minutes and time.process_time() - last_save["cpu"] >= 60 * cfg.checkpoint_minutes:
                     save_checkpoint({"base": base, "runs": runs, "n_updates": n_updates, "pool": pool})  # long iteration
                 runs.append(dsrl_update(policy, critics, temperature, optimizers, buffer, make_batch, cfg, gen, pool,
-                                        multiplier)
+                                        multiplier, update_actor=iteration >= critic_warmup)
                             if dsrl
                             else sac_update(policy, reference, critic, q_target, temperature, optimizers, buffer,
                                             make_batch, cfg, gen))
