@@ -122,20 +122,20 @@ def _eval(checkpoint: Path, out: Path, sampler: str, args, log: Path, steps: int
               "--seed", "0", "--output", str(out), *(["--steps", str(steps)] if steps else [])], log)
 
 
-def planned_config(finetune_args: list[str]):
-    """The `FinetuneConfig` these extra `finetune` options give (any spelling `finetune` accepts)."""
+def planned_config(finetune_args: list[str], algo: str = "ppo"):
+    """The `FinetuneConfig` these extra `finetune` options give `algo` (any spelling `finetune` accepts)."""
     import tyro
     from action_decoder.rl.finetune import FinetuneConfig
 
-    return tyro.cli(FinetuneConfig, args=["--checkpoint", "-", *finetune_args])
+    return tyro.cli(FinetuneConfig, args=["--checkpoint", "-", "--algo", algo, *finetune_args])
 
 
-def ft_dir_name(finetune_args: list[str], seed: int) -> str:
+def ft_dir_name(finetune_args: list[str], seed: int, algo: str = "ppo") -> str:
     """The fine-tuning's directory in a (task, decoder) run: `ft` for the defaults, plus the recipe and σ
     where they differ (`ft_lr_warmup_updates-20`) and the seed (`_s1`), so that a recipe never resumes another's run."""
     from action_decoder.rl.finetune import FinetuneConfig
 
-    cfg = planned_config(finetune_args)
+    cfg = planned_config(finetune_args, algo)
     how = recipe(dataclasses.asdict(cfg))
     parts = ["ft", *([how.replace(", ", "_").replace("=", "-")] if how != "defaults" else []),
              *([f"sigma-{cfg.sigma:g}"] if cfg.sigma != FinetuneConfig.sigma else []), *([f"s{seed}"] if seed else [])]
@@ -167,11 +167,11 @@ def train_bc(task: str, decoder: str, args) -> Path:
 def run_one(task: str, decoder: str, seed: int, args) -> None:
     run = train_bc(task, decoder, args)
     log, bc = run / "log.txt", run / "bc"
-    ft = run / ft_dir_name(args.finetune_args, seed)
+    ft = run / ft_dir_name(args.finetune_args, seed, args.algo)
     suffix = ft.name[2:]
     # The fine-tuned policy samples with K = --sde-steps (DSRL: the decoder's own K, or --steps); MeanFlow's
     # BC default is K = 1, so the BC policy is also measured at that K, the sampler and K the gain compares.
-    planned = planned_config(args.finetune_args)
+    planned = planned_config(args.finetune_args, args.algo)
     k = (planned.steps or json.loads((run / "bc_eval.json").read_text())["steps"]) if args.algo == "dsrl" \
         else planned.sde_steps
     if json.loads((run / "bc_eval.json").read_text())["steps"] != k:
@@ -311,9 +311,9 @@ def _key(r: dict) -> tuple:
             int(r.get("env_budget") or env_budget(r["algo"])))
 
 
-def planned_recipe(finetune_args: list[str]) -> str:
-    """The recipe (`recipe`) of the runs these extra `finetune` options start."""
-    return recipe(dataclasses.asdict(planned_config(finetune_args)))
+def planned_recipe(finetune_args: list[str], algo: str = "ppo") -> str:
+    """The recipe (`recipe`) of the runs these extra `finetune` options start with `algo`."""
+    return recipe(dataclasses.asdict(planned_config(finetune_args, algo)))
 
 
 def recorded(results: Path) -> set[tuple]:
@@ -567,8 +567,8 @@ def main(argv=None) -> None:
     grid = [] if args.report_only else [(f"metaworld/{t}", d, s) for t in resolve_task_spec(args.tasks, task_set)
                                         for d in args.decoders for s in args.seeds]
     if grid:
-        done, how = recorded(Path(args.results)), planned_recipe(args.finetune_args)
-        sigma = planned_config(args.finetune_args).sigma
+        done, how = recorded(Path(args.results)), planned_recipe(args.finetune_args, args.algo)
+        sigma = planned_config(args.finetune_args, args.algo).sigma
         skipped = [(t, d, s) for t, d, s in grid
                    if (t.split("/")[-1], d, args.algo, how, s, float(sigma), float(args.cpu_minutes), args.demos,
                        args.bc_steps, env_budget(args.algo)) in done]

@@ -571,6 +571,10 @@ def test_rl_fine_tuning_directory_and_k_follow_the_options(monkeypatch):
     assert rl_finetune.ft_dir_name(["--max-cpu-minutes", "10", "--eval-every", "5"], 0) == "ft"   # budget, logging
     assert rl_finetune.ft_dir_name(["--lr-warmup-updates", "20"], 2) == "ft_lr_warmup_updates-20_s2"
     assert rl_finetune.ft_dir_name(["--sigma", "0.5"], 0) == "ft_sigma-0.5"
+    # an option whose default depends on the algorithm is read with the run's algorithm
+    assert rl_finetune.ft_dir_name(["--critic-warmup-iters", "10"], 0, "dsrl") == "ft_critic_warmup_iters-10"
+    assert rl_finetune.ft_dir_name(["--critic-warmup-iters", "0"], 1, "dsrl") == "ft_s1"
+    assert rl_finetune.planned_recipe(["--critic-warmup-iters", "10"], "dsrl") == "critic_warmup_iters=10"
     assert rl_finetune.planned_config(["--sde-steps=5"]).sde_steps == 5
     assert rl_finetune.planned_config(["--sde-steps", "5"]).sde_steps == 5
 
