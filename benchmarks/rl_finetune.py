@@ -203,7 +203,7 @@ def _gain(r: dict) -> float:
 def recipe(config: dict) -> str:
     """The `finetune` options a run set away from `FinetuneConfig`'s defaults ("k=v, …"), or
     "defaults"; options a run's config does not record had their default."""
-    from action_decoder.rl.finetune import ALGO_DEFAULTS, FinetuneConfig, episodes_per_layout
+    from action_decoder.rl.finetune import ALGO_DEFAULTS, CRITIC_WARMUP_ITERS, FinetuneConfig, episodes_per_layout
 
     base = {f.name: f.default for f in dataclasses.fields(FinetuneConfig) if f.name not in RUN_FIELDS}
     config = dict(config)
@@ -215,8 +215,8 @@ def recipe(config: dict) -> str:
                                                 algo=config.get("algo", "ppo")))
     if group != episodes_per_layout(SimpleNamespace(group_size=None, algo=config.get("algo", "ppo"))):
         config["group_size"] = group
-    warmup = config.pop("critic_warmup_iters", None)      # acts only with a critic (group size 1); None = 1, dsrl 0
-    if group == 1 and warmup not in (None, 0 if config.get("algo") == "dsrl" else 1):
+    warmup = config.pop("critic_warmup_iters", None)      # acts only with a critic (group size 1)
+    if group == 1 and warmup not in (None, CRITIC_WARMUP_ITERS.get(config.get("algo", "ppo"))):
         config["critic_warmup_iters"] = warmup
     changed = [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
                for k, v in sorted(config.items()) if k in base and v != base[k]]

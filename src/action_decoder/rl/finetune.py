@@ -202,6 +202,8 @@ ALGO_DEFAULTS = {"env_steps": {"ppo": 100_000, "sac": 100_000, "dsrl": 200_000},
                  "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 2.0},
                  "critic_lr": {"ppo": 1e-3, "sac": 1e-3, "dsrl": 3e-4}}
 """The values an option left at None takes, per algorithm."""
+CRITIC_WARMUP_ITERS = {"ppo": 1, "dsrl": 0}
+"""`--critic-warmup-iters` left at None, per algorithm with a critic-only phase."""
 DSRL_TARGET_ENTROPY = 0.0
 """DSRL's default entropy per noise element (a Gaussian of std ≈ 0.24)."""
 
@@ -630,7 +632,7 @@ def _finetune(cfg: FinetuneConfig, interrupted: Optional[dict] = None) -> Path:
         raise KeyboardInterrupt
 
     group = episodes_per_layout(cfg)
-    critic_warmup = (0 if dsrl else 1) if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
+    critic_warmup = CRITIC_WARMUP_ITERS.get(cfg.algo, 0) if cfg.critic_warmup_iters is None else cfg.critic_warmup_iters
 
     def run_ends() -> bool:
         """At an iteration boundary: the env-step or CPU budget is spent, or cannot pay for the next rollout."""
