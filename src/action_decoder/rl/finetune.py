@@ -113,8 +113,8 @@ class FinetuneConfig:
     """Discount per decision (one chunk)."""
     gae_lambda: float = 0.95
     """λ of GAE (PPO with the critic)."""
-    reward: Literal["dense", "success"] = "dense"
-    """dense: the env's reward per chunk / 10; success: --success-reward at success, plus shaping."""
+    reward: Optional[Literal["dense", "success"]] = None
+    """dense: the env's reward per chunk / 10; success: --success-reward at success, plus shaping (default dense; success with dsrl)."""
     success_reward: float = 1.0
     """`--reward success`: reward on the decision that reaches success (the episode ends there)."""
     shaping_scale: float = 0.1
@@ -200,7 +200,8 @@ def eval_rank(row: dict) -> tuple:
 ALGO_DEFAULTS = {"env_steps": {"ppo": 100_000, "sac": 100_000, "dsrl": 200_000},
                  "num_envs": {"ppo": 32, "sac": 32, "dsrl": 8},
                  "sac_updates_per_decision": {"ppo": 0.5, "sac": 0.5, "dsrl": 2.0},
-                 "critic_lr": {"ppo": 1e-3, "sac": 1e-3, "dsrl": 3e-4}}
+                 "critic_lr": {"ppo": 1e-3, "sac": 1e-3, "dsrl": 3e-4},
+                 "reward": {"ppo": "dense", "sac": "dense", "dsrl": "success"}}
 """The values an option left at None takes, per algorithm."""
 CRITIC_WARMUP_ITERS = {"ppo": 1, "dsrl": 0}
 """`--critic-warmup-iters` left at None, per algorithm with a critic-only phase."""
