@@ -334,6 +334,12 @@ def test_rl_recipe_names_the_options_a_run_changed(monkeypatch):
     assert rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": None}) == \
         rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": 0}) == "defaults"
     assert rl_finetune.recipe({"algo": "dsrl", "critic_warmup_iters": 1}) == "critic_warmup_iters=1"
+    # the reward: dense for PPO, success for DSRL, whether logged as None or spelt out
+    assert rl_finetune.recipe({"reward": "dense"}) == rl_finetune.recipe({"reward": None}) == "defaults"
+    assert rl_finetune.recipe({"algo": "dsrl", "reward": "success"}) == "defaults"
+    assert rl_finetune.recipe({"algo": "dsrl", "reward": "dense"}) == "reward=dense"
+    assert rl_finetune.recipe({"reward": "success"}) == "reward=success"
+    assert rl_finetune.ft_dir_name(["--reward", "dense"], 1, "dsrl") == "ft_reward-dense_s1"
 
 
 def test_rl_early_phase_reads_the_first_iterations_of_a_run(monkeypatch, tmp_path):
