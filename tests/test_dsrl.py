@@ -348,7 +348,7 @@ def test_dsrl_resumes_bit_exact_and_the_saved_policy_acts(tmp_path, capsys, alia
     logs = [json.loads((tmp_path / d / "finetune_log.json").read_text())["history"] for d in ("whole", "cut")]
     strip = lambda hs: [{k: v for k, v in h.items() if k not in ("wall_s", "cpu_s", "rollout_cpu_s")} for h in hs]  # noqa: E731
     assert strip(logs[0]) == strip(logs[1]) and logs[0][-1]["updates"] == 2 * logs[0][-1]["decisions"]
-    # DSRL's default reward: 1 at success plus k·(γ·Φ(s′) − Φ(s)), whose sum from any decision lies in [−k, k]
+    # DSRL's default reward: 1 at success plus k·(γ·Φ(s′) − Φ(s)), whose sum from decision t is −k·Φ(s_t) ∈ [−k, 0]
     assert -0.1 <= logs[0][-1]["return_to_go"] <= 1.1
     assert ("kl_multiplier" in logs[0][-1]) == bool(trust)
     # the decoder's weights are the BC policy's; the noise actor moved
