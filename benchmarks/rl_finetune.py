@@ -27,6 +27,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -410,7 +411,7 @@ def sample_efficiency(rows: list[dict]) -> list[str]:
             continue
         best_how, best = min(hit, key=lambda m: m[1])
         others = [f"{how} " + (f"{x} ({x / best:.1f}×)" if x is not None else
-                               f"never within {most} ({most / best:.0f}× or more)")
+                               f"never within {most} ({math.floor(10 * most / best) / 10:g}× or more)")
                   for how, x, most in marks if how != best_how]
         lines.append(f"- {h} half, {dec}, defaults over the {len(common)} task(s) both ran: env steps to a mean gain "
                      f"of +{GAIN_MARK:g}: {best_how} {best}; " + "; ".join(others))

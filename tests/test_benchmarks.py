@@ -469,10 +469,10 @@ def test_rl_summary_counts_agreeing_seeds_and_compares_algorithms_in_env_steps(m
     assert "the seeds of 1 of 2 task(s) within 20 points" in dsrl
     assert "first reached at 16000 env steps" in dsrl          # mean of +30, +10, +20, +20 = +20 at 16k
     assert "- report half, mean_flow, defaults over the 2 task(s) both ran: env steps to a mean gain of +15: " \
-           "dsrl 16000; ppo never within 600000 (38× or more)" in lines
+           "dsrl 16000; ppo never within 600000 (37.5× or more)" in lines
     one_ppo = [r for r in rows if not (r["algo"] == "ppo" and r["task"] == "soccer-v3")]
     assert "- report half, mean_flow, defaults over the 1 task(s) both ran: env steps to a mean gain of +15: " \
-           "dsrl 16000; ppo never within 600000 (38× or more)" in rl_finetune.summary(one_ppo)   # lever-pull: +30, +10
+           "dsrl 16000; ppo never within 600000 (37.5× or more)" in rl_finetune.summary(one_ppo)   # lever-pull: +30, +10
     ppo_first = [dict(r, curve=[[0, None, 0.2, 0], [1, None, 0.6, 32000]]) if r["algo"] == "ppo" else r for r in rows]
     assert "- report half, mean_flow, defaults over the 2 task(s) both ran: env steps to a mean gain of +15: " \
            "dsrl 16000; ppo 32000 (2.0×)" in rl_finetune.summary(ppo_first)
