@@ -1,6 +1,7 @@
 """Meta-World tasks, seeded layouts, demonstrations, datasets and closed-loop evaluation."""
 
 import json
+import re
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -184,6 +185,38 @@ def test_noisy_demos_store_the_clean_continuation_as_chunk_targets(reach_demos):
         ChunkDataset(noisy, horizon=LOOKAHEAD + 1)
     with pytest.raises(ValueError, match="continuation"):
         concat_datasets([noisy, clean])
+
+
+def test_demos_recorded_with_executed_labels_keep_the_noisy_action_that_moved_the_env(reach_demos, tmp_path):
+    """action_label="executed": the same noise stream as DART's (the same states), but each recorded action is
+    the executed one, the expert's plus the noise, and no continuation is stored."""
+    from action_decoder.data.demos import record_demos
+
+    dart = load_dataset(generate_demos("metaworld/reach", 2, seed=0, cache_dir=reach_demos.parents[1],
+                                       action_noise=0.2))
+    root = record_demos("metaworld/reach", 2, tmp_path / "exec", seed=0, action_noise=0.2, action_label="executed")
+    executed = load_dataset(root)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["source"]["action_label"] == "executed" and executed.continuations is None
+    np.testing.assert_allclose(executed.states, dart.states, atol=1e-2)    # DART's continuations rewind the env
+    noise = executed.actions - dart.actions                                  # clipped to [-1, 1] where it went past
+    inside = np.abs(dart.actions + noise) < 1 - 1e-6
+    assert 0.17 < noise[inside].std() < 0.23 and np.abs(executed.actions).max() <= 1.0
+    # The next state follows the recorded action: replaying it from the same state reproduces the episode.
+    env = make_env("reach", seed=0)
+    env.reset(seed=int(info["source"]["first_layout"]))
+    n = int(executed.episode_lengths[0])
+    replay = [env.step(a.astype(np.float32))[0] for a in executed.actions[:n - 1]]
+    np.testing.assert_allclose(np.stack(replay), executed.states[1:n], atol=1e-5)
+    env.reset(seed=int(info["source"]["first_layout"]))                    # DART's clean labels do not replay
+    replay = [env.step(a.astype(np.float32))[0] for a in dart.actions[:n - 1]]
+    assert np.abs(np.stack(replay) - dart.states[1:n]).max() > 1e-2
+    env.close()
+    for label, noise_std, want in (("executed", 0.0, "needs --action-noise > 0, got --action-noise 0.0"),
+                                   ("clean", 0.2, "expected one of ['expert', 'executed'], got 'clean'")):
+        with pytest.raises(ValueError, match=re.escape(f"--action-label: ") + ".*" + re.escape(want)):
+            record_demos("metaworld/reach", 1, tmp_path / label, action_noise=noise_std, action_label=label)
+        assert not (tmp_path / label).exists()
 
 
 def test_saved_state_rewinds_the_env_exactly():

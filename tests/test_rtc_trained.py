@@ -192,6 +192,51 @@ def test_balanced_rows_weight_each_row_by_the_inverse_share_of_chunks_that_train
         DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_balance_rows="yes")
 
 
+def test_prefix_noise_perturbs_only_the_prefix_fed_in_and_keeps_the_targets():
+    """With rtc_prefix_noise σ the kept rows are fed a + σ·ε (ε drawn after the delays) at t = 1, the other rows
+    the usual z_t, and the loss still regresses a − e on the other rows; σ = 0 draws nothing more."""
+    B, a = 512, torch.randn(512, H, D, dtype=torch.float64)
+    seen = {}
+
+    def oracle(x, t):
+        seen["x"], seen["t"] = x, t
+        return torch.zeros_like(x)
+
+    loss = flow_matching_loss(oracle, a, torch.Generator().manual_seed(5), rtc_max_delay=4, rtc_prefix_noise=0.3)
+    g = torch.Generator().manual_seed(5)
+    t = torch.rand(B, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    keep = prefix_mask(sample_delays(B, 4, g), H)
+    eps = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    z = (1 - t[:, None, None]) * e + t[:, None, None] * a
+    want_x = torch.where(keep[..., None], a + 0.3 * eps, z)
+    torch.testing.assert_close(seen["x"], want_x, rtol=1e-12, atol=0)
+    torch.testing.assert_close(seen["t"], torch.where(keep, 1.0, t[:, None].expand(B, H)), rtol=0, atol=0)
+    want = torch.stack([(a - e)[b][~keep[b]].square().mean() for b in range(B)]).mean()
+    torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)            # targets: the clean actions
+    assert 0.28 < (seen["x"] - a)[keep].std() < 0.32
+    plain = flow_matching_loss(oracle, a, torch.Generator().manual_seed(5), rtc_max_delay=4)
+    torch.testing.assert_close(seen["x"][keep], a[keep], rtol=0, atol=0)
+    torch.testing.assert_close(plain, want, rtol=1e-12, atol=0)
+    # MeanFlow: the same prefix input in every call.
+    u_seen = []
+    u = lambda x, t, r: (u_seen.append(x), torch.zeros_like(x))[1]        # noqa: E731
+    meanflow_loss(u, a, torch.Generator().manual_seed(5), ratio_r_neq_t=0.0, adaptive_p=0.0, time_dist="uniform",
+                  rtc_max_delay=4, rtc_prefix_noise=0.3)
+    g = torch.Generator().manual_seed(5)
+    sample_meanflow_times(B, 0.0, 0.4, 1.0, g, dtype=torch.float64, dist="uniform")
+    torch.randn(a.shape, generator=g, dtype=torch.float64)
+    keep = prefix_mask(sample_delays(B, 4, g), H)
+    eps = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(u_seen[0][keep], (a + 0.3 * eps)[keep], rtol=1e-12, atol=0)
+    for bad in (-0.1, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match=r"rtc_prefix_noise: expected a non-negative finite std in normalised "
+                                             rf"action units, got {bad!r}"):
+            flow_matching_loss(oracle, a, rtc_max_delay=2, rtc_prefix_noise=bad)
+    with pytest.raises(ValueError, match="rtc_prefix_noise: expected a non-negative finite number, got -1"):
+        DecoderConfig(decoder_type="flow_matching", rtc_max_delay=2, rtc_prefix_noise=-1)
+
+
 @pytest.mark.parametrize("dudt", ["jvp", "finite_difference"])
 def test_meanflow_loss_holds_the_prefix_fixed_along_the_tangent(dudt):
     """u(x, t, r) = x[:, 0] + t[:, 0] broadcast over the chunk: with row 0 in the prefix (x = a, t = 1
@@ -441,6 +486,10 @@ def test_config_saves_rtc_delay_dist_and_format_7_reads_uniform(tmp_path):
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 7}))
     assert DecoderConfig.from_json(tmp_path / "old.json").rtc_delay_dist == "uniform"
     assert saved["rtc_balance_rows"] is False and DecoderConfig.from_json(tmp_path / "old.json").rtc_balance_rows is False
+    assert saved["rtc_prefix_noise"] == 0.0
+    old = {k: v for k, v in saved.items() if k != "rtc_prefix_noise"}
+    (tmp_path / "old8.json").write_text(json.dumps({**old, "format_version": 8}))
+    assert DecoderConfig.from_json(tmp_path / "old8.json").rtc_prefix_noise == 0.0
     with pytest.raises(ValueError, match=r"rtc_delay_dist: expected one of \['uniform', 'exp', 'half_zero'\], got 'zipf'"):
         DecoderConfig(decoder_type="mean_flow", rtc_max_delay=2, rtc_delay_dist="zipf")
 
@@ -449,7 +498,7 @@ def test_config_saves_rtc_max_delay_and_older_formats_read_zero(tmp_path):
     cfg = DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4)
     cfg.to_json(tmp_path / "c.json")
     saved = json.loads((tmp_path / "c.json").read_text())
-    assert CONFIG_FORMAT_VERSION == 8 and saved["rtc_max_delay"] == 4
+    assert CONFIG_FORMAT_VERSION == 9 and saved["rtc_max_delay"] == 4
     assert DecoderConfig.from_json(tmp_path / "c.json").rtc_max_delay == 4
     old = {k: v for k, v in saved.items() if k != "rtc_max_delay"}
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 6}))
@@ -479,13 +528,14 @@ def test_cli_round_trip_train_rtc_max_delay_then_eval_rtc_mode(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "run"
     assert cli.main(["train", "--task", "metaworld/reach", "--decoder", "mean_flow", "--rtc-max-delay", "2",
-                     "--rtc-delay-dist", "exp", "--rtc-balance-rows",
+                     "--rtc-delay-dist", "exp", "--rtc-balance-rows", "--rtc-prefix-noise", "0.2",
                      "--steps", "2", "--demos", "1", "--batch-size", "8", "--hidden-size", "32", "--num-layers", "1",
                      "--eval-episodes", "0", "--no-progress", "--checkpoint-every", "2", "--log-every", "1",
                      "--output-dir", str(out)]) == 0
     ckpt = out / "final"
     saved = json.loads((ckpt / "config.json").read_text())
     assert saved["rtc_max_delay"] == 2 and saved["rtc_delay_dist"] == "exp" and saved["rtc_balance_rows"] is True
+    assert saved["rtc_prefix_noise"] == 0.2
     args = ["eval", "--checkpoint", str(ckpt), "--episodes", "1", "--num-envs", "1", "--max-steps", "12",
             "--delay", "2", "--rtc"]
     for mode in ("trained", "guided"):

@@ -40,7 +40,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 8
+CONFIG_FORMAT_VERSION = 9
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -52,6 +52,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     6: {"action_constant_below": SPREAD_FLOOR, "action_squash": False},
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
     8: {"n_obs_steps": 1, "rtc_delay_dist": "uniform", "rtc_balance_rows": False},
+    9: {"rtc_prefix_noise": 0.0},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -174,6 +175,11 @@ class DecoderConfig:
     rtc_balance_rows: bool = False
     """Training-time RTC: weight row j of the prefix-masked loss by 1/P(d ≤ j), so that each row's expected
     weight is the plain loss's (row j is in the loss only when d ≤ j). Format-7 files read False."""
+    rtc_prefix_noise: float = 0.0
+    """Training-time RTC: std of Gaussian noise added to the committed prefix the network is fed, in normalised
+    action units (the loss targets stay the clean actions), so that it learns to continue a prefix that an older
+    plan made and the current observation may contradict (docs/benchmarks/rtc.md screens it); 0: the clean
+    prefix. Format-8 files read 0."""
     # --- the Action Expert network ---
     state_dim: int = 39
     """Width of `batch["state"]` (Meta-World's 39 by default)."""
@@ -288,6 +294,7 @@ class DecoderConfig:
         if not isinstance(self.rtc_balance_rows, bool):
             raise ValueError(f"rtc_balance_rows: expected true or false, got {self.rtc_balance_rows!r}")
         _positive_float("rtc_guidance_weight", self.rtc_guidance_weight, allow_zero=True)
+        _positive_float("rtc_prefix_noise", self.rtc_prefix_noise, allow_zero=True)
         if isinstance(self.rtc_max_delay, bool) or not isinstance(self.rtc_max_delay, int) or self.rtc_max_delay < 0:
             raise ValueError(f"rtc_max_delay: expected a non-negative integer number of control steps (0: no "
                              f"training-time RTC), got {self.rtc_max_delay!r}")

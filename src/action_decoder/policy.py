@@ -277,7 +277,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         if cfg.decoder_type == "flow_matching":
             loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond,
                                       rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
-                                      rtc_balance_rows=cfg.rtc_balance_rows)
+                                      rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise)
         elif cfg.decoder_type == "mean_flow":
             weights = self.model.head.weight.dtype
             if (cfg.meanflow_target == "identity" and cfg.meanflow_dudt == "finite_difference"
@@ -290,7 +290,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
                                  dudt=cfg.meanflow_dudt, target=cfg.meanflow_target,
                                  rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
-                                      rtc_balance_rows=cfg.rtc_balance_rows)
+                                 rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)

@@ -26,6 +26,8 @@ class RecordConfig:
     action_noise: float = 0.0
     """DART recording: std of the Gaussian added to each executed action (the recorded action stays the
     expert's); > 0 also stores the expert's clean next actions per frame as ``action.continuation``."""
+    action_label: Literal["expert", "executed"] = "expert"
+    """With --action-noise: the action the dataset keeps, the expert's clean one (DART) or the executed noisy one (no continuation)."""
     cameras: Optional[list[str]] = None
     """Meta-World cameras to render at every observation (e.g. corner2, or corner2,corner), stored as
     the video features observation.images.<camera>. None: no pixels."""
@@ -67,7 +69,7 @@ def run_record(cfg: RecordConfig) -> Path:
     check_writable(Path(cfg.output_dir))
     size = cfg.image_size or (480 if cfg.layout == "lerobot" else 64)
     root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
-                        image_size=size, layout=cfg.layout)
+                        image_size=size, layout=cfg.layout, action_label=cfg.action_label)
     info = json.loads((root / "meta" / "info.json").read_text())
     cameras = [k for k, v in info["features"].items() if v.get("dtype") == "video"]
     print(f"recorded {info['total_episodes']} demonstrations ({info['total_frames']} frames, {info['total_tasks']} "

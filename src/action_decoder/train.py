@@ -118,6 +118,8 @@ class TrainConfig:
     """Training-time RTC: how each chunk's delay is drawn on 0..--rtc-max-delay (exp: P(d) ∝ e^(−d); half_zero: 0 for half the chunks, else uniform; uniform)."""
     rtc_balance_rows: bool = False
     """Training-time RTC: weight row j of the loss by 1/P(d ≤ j), the share of chunks whose loss covers it."""
+    rtc_prefix_noise: float = 0.0
+    """Training-time RTC: std of the noise added to the committed prefix the network is fed, in normalised action units (0: clean)."""
     checkpoint_every: int = 500
     """Steps between resumable checkpoints."""
     log_every: int = 25
@@ -350,7 +352,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
         flow_prediction=flow_prediction(cfg), rtc_max_delay=cfg.rtc_max_delay,
-        rtc_delay_dist=cfg.rtc_delay_dist, rtc_balance_rows=cfg.rtc_balance_rows,
+        rtc_delay_dist=cfg.rtc_delay_dist, rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
         extra={"tasks": tasks, "train": asdict(cfg),
                **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
 

@@ -102,6 +102,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     rtc_max_delay: int = 0
     rtc_delay_dist: str = "exp"
     rtc_balance_rows: bool = False
+    rtc_prefix_noise: float = 0.0
     default_ctrl_freq: float = 10.0
 
     normalization_mapping: dict[str, NormalizationMode] = field(

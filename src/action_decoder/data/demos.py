@@ -16,6 +16,12 @@ the clean expert's own next ``LOOKAHEAD`` actions from that state (``action.cont
 simulated from a saved MuJoCo state and rewound), and chunks are cut from those
 (docs/benchmarks/metaworld_bc.md).
 
+``action_label="executed"`` keeps the executed (noisy) action instead, and no continuation: a
+chunk's first actions then carry noise the state does not predict, and its later actions are the
+expert's reaction to it. With a deterministic expert's clean actions a chunk's first actions are
+a function of its state; with executed ones they are not, which is what a committed prefix in
+training-time real-time chunking can then inform (docs/benchmarks/rtc.md screens it).
+
 ``cameras`` records pixels too: the named Meta-World cameras (corner2, corner, topview, ...) are
 rendered offscreen at every observation (after reset and after each action, aligned with the
 states), ``image_size``² pixels, stored as the video features ``observation.images.<camera>``.
@@ -119,6 +125,18 @@ def _read_v20(path: Path) -> tuple[list[dict], list[str], float, dict]:
     return episodes, tasks, info["fps"], {**extra, "env": "metaworld"}
 
 
+ACTION_LABELS = ("expert", "executed")
+
+
+def check_action_label(action_label: str, action_noise: float) -> None:
+    """``action_label`` one of ``ACTION_LABELS``; "executed" only with ``action_noise`` > 0 (else the two agree)."""
+    if action_label not in ACTION_LABELS:
+        raise ValueError(f"--action-label: expected one of {list(ACTION_LABELS)}, got {action_label!r}")
+    if action_label == "executed" and not action_noise > 0:
+        raise ValueError(f"--action-label: 'executed' keeps the noisy executed action and needs --action-noise > 0, "
+                         f"got --action-noise {action_noise!r}")
+
+
 def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
     """``[LOOKAHEAD, D]``: ``action`` and the clean expert's next actions from the env's current
     state; the env is left as it was. Past Meta-World's step cap the last action is held."""
@@ -131,10 +149,12 @@ def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
     return np.stack(actions + [actions[-1]] * (LOOKAHEAD - len(actions)))
 
 
-def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observe=None) -> dict | None:
+def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observe=None,
+             action_label: str = "expert") -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
-    the executed action is perturbed (noise drawn from ``seed``), the recorded one is not, and
-    each frame keeps the clean continuation. ``rig`` (`envs.render.CameraObservation`) adds the
+    the executed action is perturbed (noise drawn from ``seed``); with ``action_label`` "expert" the
+    recorded one is not, and each frame keeps the clean continuation; with "executed" the recorded
+    action is the executed one. ``rig`` (`envs.render.CameraObservation`) adds the
     frames of its cameras at every recorded state (keys: a camera name, stored as ``observation.images.<name>``,
     or a whole feature key). ``observe`` maps the simulator's state to the recorded one (default: as it is)."""
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
@@ -148,10 +168,12 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observ
         states.append(observe(obs) if observe is not None else obs.astype(np.float32))
         for camera, frame in (rig(env) if rig is not None else {}).items():   # [S, S, 3] uint8
             frames.setdefault(camera if camera.startswith("observation.") else IMAGE_PREFIX + camera, []).append(frame)
-        actions.append(action)
+        clean = action
         if action_noise > 0:
-            continuations.append(_continuation(env, expert, action))          # [LOOKAHEAD, D]
+            if action_label == "expert":
+                continuations.append(_continuation(env, expert, action))      # [LOOKAHEAD, D]
             action = np.clip(action + action_noise * noise.standard_normal(action.shape), -1.0, 1.0)
+        actions.append(clean if action_label == "expert" else action)
         obs, reward, _, _, info = env.step(action.astype(np.float32))
         rewards.append(reward)
         successes.append(bool(info["success"]))
@@ -170,12 +192,13 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observ
 
 def record_episodes(
     task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0,
-    cameras: list[str] | None = None, image_size: int = 64, layout: str = "library",
+    cameras: list[str] | None = None, image_size: int = 64, layout: str = "library", action_label: str = "expert",
 ) -> tuple[list[dict], float, dict]:
     """Roll out the scripted expert of ``task`` until ``num_episodes`` succeed: the episodes (the
     dicts ``write_episodes`` takes, ``task_index`` 0, ``images`` of ``cameras`` at ``image_size``²
     when given), the env's fps and a ``source`` record (env, versions, seed, first layout,
-    attempts, expert success rate, noise). ``layout="lerobot"``: LeRobot's observation
+    attempts, expert success rate, noise, label). ``action_label``: the action kept with ``action_noise`` > 0,
+    "expert" (clean, with the continuation) or "executed" (the noisy one). ``layout="lerobot"``: LeRobot's observation
     (`envs.lerobot_view`; ``cameras`` None or ["corner2"], at LeRobot's 480² whatever ``image_size``)."""
     cameras = camera_names(cameras)
     from ..envs import lerobot_view
@@ -184,6 +207,7 @@ def record_episodes(
 
     if layout not in ("library", "lerobot"):
         raise ValueError(f"--layout: expected 'library' or 'lerobot', got {layout!r}")
+    check_action_label(action_label, action_noise)
     if layout == "lerobot" and cameras not in ([], [lerobot_view.CAMERA]):
         raise ValueError(f"--cameras: LeRobot's Meta-World env observes its {lerobot_view.CAMERA} camera only; expected "
                          f"--cameras {lerobot_view.CAMERA} (or none, a state-only dataset) with --layout lerobot, "
@@ -212,7 +236,7 @@ def record_episodes(
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     try:
         for attempt, layout_seed in enumerate(seeds, start=1):
-            episode = _rollout(env, expert, layout_seed, action_noise, rig, observe)
+            episode = _rollout(env, expert, layout_seed, action_noise, rig, observe, action_label)
             if episode is not None:
                 episodes.append(episode)
             if len(episodes) == num_episodes:
@@ -232,6 +256,7 @@ def record_episodes(
     source = {"env": "metaworld", "metaworld_version": importlib.metadata.version("metaworld"), "task": name,
               "seed": seed, "first_layout": seeds[0], "attempts": attempt, "expert_success_rate": num_episodes / attempt,
               "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise,
+              **({"action_label": action_label} if action_label != "expert" else {}),
               **({"cameras": cameras, "image_size": image_size} if cameras else {}),
               **({"layout": layout} if layout != "library" else {})}
     return episodes, round(1.0 / env.unwrapped.dt, 6), source
@@ -291,15 +316,17 @@ def generate_demos(
 
 def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int = 0, action_noise: float = 0.0,
                  max_attempts_factor: float = 3.0, cameras: list[str] | None = None, image_size: int = 64,
-                 layout: str = "library") -> Path:
+                 layout: str = "library", action_label: str = "expert") -> Path:
     """Record ``num_episodes`` expert demonstrations of every task in ``spec`` (``metaworld/<task>``,
     comma-separated or a group) into one LeRobot v3.0 dataset at ``output_dir``, with the
     Meta-World task names as task strings (``task_index`` in the order of ``resolve_tasks``) and
     ``"env": "metaworld"`` in ``info.json``; ``cameras`` (Meta-World names) add their frames at
     ``image_size``² as video features ``observation.images.<camera>``. ``layout="lerobot"`` records
     LeRobot's Meta-World observation instead (`record_episodes`), with ``"layout": "lerobot"`` in
-    ``info.json``. ``output_dir`` must be new or empty: an existing dataset is never overwritten."""
+    ``info.json``. ``action_label`` (`record_episodes`): the action kept with ``action_noise`` > 0.
+    ``output_dir`` must be new or empty: an existing dataset is never overwritten."""
     cameras = camera_names(cameras)
+    check_action_label(action_label, action_noise)
     from ..envs.metaworld_tasks import resolve_tasks
 
     out = Path(output_dir).expanduser()
@@ -308,7 +335,7 @@ def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int
     names, episodes, sources = resolve_tasks(spec), [], {}
     for i, name in enumerate(names):
         eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
-                                                  cameras, image_size, layout)
+                                                  cameras, image_size, layout, action_label)
         episodes += [{**ep, "task_index": i} for ep in eps]
     source = sources[names[0]] if len(names) == 1 else {"env": "metaworld", "tasks": sources}
     info = {"robot_type": "sawyer", "env": "metaworld", "source": source}

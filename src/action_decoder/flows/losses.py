@@ -42,13 +42,20 @@ def _bcast(t: Tensor, like: Tensor) -> Tensor:
 
 
 def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Generator],
-                 cond: Optional[Mapping[str, Any]], delay_dist: str = "uniform", balance_rows: bool = False):
+                 cond: Optional[Mapping[str, Any]], delay_dist: str = "uniform", balance_rows: bool = False,
+                 prefix_noise: float = 0.0):
     """Training-time RTC (`flows.rtc_trained`): (fn, cond, live [B, H] or None). With max_delay > 0,
     row b's first d_b actions (d_b on 0..max_delay from `delay_dist`) are given clean at t = r = 1 (`with_clean_prefix`,
     its mask and clean actions travel in `cond` so that every row split slices them too) and `live`
     marks the other rows, the ones the loss covers: a bool mask, or with `balance_rows` their weights
-    1/P(d ≤ j) (`row_weights`; 0 on the prefix), so that each row's expected weight is the plain loss's."""
+    1/P(d ≤ j) (`row_weights`; 0 on the prefix), so that each row's expected weight is the plain loss's.
+    `prefix_noise` σ > 0: the prefix fed in is a + σ·ε (ε ~ N(0, I), drawn after the delays), while the
+    loss targets stay a: the network learns to continue a committed prefix that is off the data."""
     check_max_delay(max_delay, a.shape[1])
+    if isinstance(prefix_noise, bool) or not isinstance(prefix_noise, (int, float)) or not prefix_noise >= 0 \
+            or prefix_noise == float("inf"):
+        raise ValueError(f"rtc_prefix_noise: expected a non-negative finite std in normalised action units, "
+                         f"got {prefix_noise!r}")
     if delay_dist not in DELAY_DISTS:
         raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {delay_dist!r}")
     if not max_delay:
@@ -57,7 +64,9 @@ def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Genera
     live = ~keep
     if balance_rows:
         live = live.to(a.dtype) * row_weights(max_delay, a.shape[1], delay_dist).to(a.device, a.dtype)   # [B, H]
-    return with_clean_prefix(fn), {**(cond or {}), KEEP: keep, CLEAN: a}, live
+    clean = a + prefix_noise * torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype) \
+        if prefix_noise else a                                                                # [B, H, D]
+    return with_clean_prefix(fn), {**(cond or {}), KEEP: keep, CLEAN: clean}, live
 
 
 def _masked_mean(sq: Tensor, live: Optional[Tensor]) -> Tensor:
@@ -73,19 +82,22 @@ def _masked_mean(sq: Tensor, live: Optional[Tensor]) -> Tensor:
 
 def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[torch.Generator] = None,
                        cond: Optional[Mapping[str, Any]] = None, rtc_max_delay: int = 0,
-                       rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False) -> Tensor:
+                       rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False,
+                       rtc_prefix_noise: float = 0.0) -> Tensor:
     """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries.
 
     `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
     d actions (d on 0..rtc_max_delay from `rtc_delay_dist`, `flows.rtc_trained.DELAY_DISTS`) are given clean at t = 1 (the velocity then takes times per
     token [B, H]); the loss is the mean over the other rows' entries, per chunk, then over chunks
-    (`rtc_balance_rows`: row j's entries weighted 1/P(d ≤ j) and summed, over H×D)."""
+    (`rtc_balance_rows`: row j's entries weighted 1/P(d ≤ j) and summed, over H×D; `rtc_prefix_noise`: the
+    prefix fed in carries Gaussian noise of that std, `clean_prefix`)."""
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions
     t = torch.rand(a.shape[0], generator=generator, device=a.device, dtype=a.dtype)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z = interpolate(e, a, t)
-    fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist, rtc_balance_rows)
+    fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist, rtc_balance_rows,
+                                  rtc_prefix_noise)
     v = checked_call(lambda x, tt: fn(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
     if live is None:
         return (v - (a - e)).square().mean()
@@ -207,7 +219,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   adaptive_c: float = 1e-3, time_dist: str = "logit_normal",
                   one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
                   fd_one_call: Optional[bool] = None, target: str = "identity", rtc_max_delay: int = 0,
-                  rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False) -> Tensor:
+                  rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False,
+                  rtc_prefix_noise: float = 0.0) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -248,7 +261,8 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
     d actions (d on 0..rtc_max_delay from `rtc_delay_dist`) are given clean at t = r = 1 in every call (held fixed along
     the du/dt tangent and in the split's intermediate point), and each row's error is the mean over
-    its other rows' entries (`rtc_balance_rows`: weighted 1/P(d ≤ j), summed over H×D).
+    its other rows' entries (`rtc_balance_rows`: weighted 1/P(d ≤ j), summed over H×D; `rtc_prefix_noise`:
+    the prefix fed in carries Gaussian noise of that std, `clean_prefix`).
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
@@ -270,7 +284,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e                                   # [B, H, D] each
     avg_velocity, cond, live = clean_prefix(avg_velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist,
-                                            rtc_balance_rows)
+                                            rtc_balance_rows, rtc_prefix_noise)
     if tangent == "boundary" and n > 0:
         c = slice_cond(cond, slice(0, n))
         with torch.no_grad():
