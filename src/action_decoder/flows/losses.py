@@ -52,8 +52,8 @@ def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Genera
     `prefix_noise` σ > 0: the prefix fed in is a + σ·ε (ε ~ N(0, I), drawn after the delays), while the
     loss targets stay a: the network learns to continue a committed prefix that is off the data."""
     check_max_delay(max_delay, a.shape[1])
-    if isinstance(prefix_noise, bool) or not isinstance(prefix_noise, (int, float)) or not prefix_noise >= 0 \
-            or prefix_noise == float("inf"):
+    if isinstance(prefix_noise, bool) or not isinstance(prefix_noise, (int, float)) \
+            or not 0 <= prefix_noise < float("inf"):
         raise ValueError(f"rtc_prefix_noise: expected a non-negative finite std in normalised action units, "
                          f"got {prefix_noise!r}")
     if delay_dist not in DELAY_DISTS:
