@@ -569,13 +569,14 @@ def test_finetune_of_a_ddpm_policy_reaches_its_refusal_whatever_its_tasks(tmp_pa
                   "flow_matching or mean_flow", "decoder_type='DDPM'")
 
 
-@pytest.mark.parametrize("command", ["train", "eval", "finetune"])
+@pytest.mark.parametrize("command", ["train", "eval", "finetune", "relabel"])
 def test_help_gives_each_option_one_line_without_measurements(command, capsys, monkeypatch):
     """`--help`: per option one line saying what it does and its default; measurements live in the
     benchmark pages."""
     from dataclasses import fields
 
     from action_decoder.evaluate import EvalConfig
+    from action_decoder.relabel import RelabelConfig
     from action_decoder.rl import FinetuneConfig
     from action_decoder.train import TrainConfig
 
@@ -595,7 +596,7 @@ def test_help_gives_each_option_one_line_without_measurements(command, capsys, m
             options[current] = [row]
         elif current is not None:
             options[current].append(row)
-    config = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig}[command]
+    config = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "relabel": RelabelConfig}[command]
     flags = {f"--{f.name.replace('_', '-')}" for f in fields(config)}
     assert flags <= set(options), flags - set(options)
     for flag in flags:

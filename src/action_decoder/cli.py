@@ -1,4 +1,4 @@
-"""`action-decoder` console script: train, eval, finetune, record, convert, export, serve (every option from a dataclass, via tyro)."""
+"""`action-decoder` console script: train, eval, finetune, record, relabel, convert, export, serve (every option from a dataclass, via tyro)."""
 
 from __future__ import annotations
 
@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     from .export import ExportConfig, run_export
     from .lerobot_checkpoint import ConvertConfig, run_convert
     from .record import RecordConfig, run_record
+    from .relabel import RelabelConfig, run_relabel
     from .rl import FinetuneConfig, finetune
     from .serving import ServeConfig, run_serve
     from .train import TrainConfig, closed_loop_env, train
@@ -50,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     # `action-decoder train` with no options runs the default task end to end.
     commands = {"train": TrainConfig, "eval": EvalConfig, "finetune": FinetuneConfig, "record": RecordConfig,
-                "convert": ConvertConfig, "export": ExportConfig, "serve": ServeConfig}
+                "relabel": RelabelConfig, "convert": ConvertConfig, "export": ExportConfig, "serve": ServeConfig}
     cfg = tyro.extras.subcommand_cli_from_dict(commands, args=args, prog="action-decoder")
     try:
         if hasattr(cfg, "device"):
@@ -67,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
             finetune(cfg)
         elif isinstance(cfg, RecordConfig):
             run_record(cfg)
+        elif isinstance(cfg, RelabelConfig):
+            run_relabel(cfg)
         elif isinstance(cfg, ConvertConfig):
             run_convert(cfg)
         elif isinstance(cfg, ExportConfig):

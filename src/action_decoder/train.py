@@ -190,6 +190,7 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
     A dataset's last episodes are held out (`held_out_count`) unless it names an environment
     (`closed_loop_env`); statistics come from the training episodes alone."""
     from .data import ChunkDataset, load_dataset, load_demos
+    from .data.lerobot_format import read_info
 
     if cfg.dataset is None:
         if not quiet:
@@ -199,6 +200,9 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
         _say_cameras(episodes, quiet)
         return ChunkDataset(episodes, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks), None
     cameras = None if cfg.cameras is None else [c for item in cfg.cameras for c in item.split(",") if c]
+    if cfg.n_obs_steps > 1 and (read_info(cfg.dataset).get("source") or {}).get("relabel"):
+        raise ValueError(f"--n-obs-steps: {cfg.dataset} holds relabelled plans (`action-decoder relabel`), frames "
+                         f"n_action_steps apart rather than consecutive observations; expected 1, got {cfg.n_obs_steps}")
     episodes = load_dataset(cfg.dataset, cameras, cfg.image_size)
     _say_cameras(episodes, quiet)
     n = episodes.num_episodes

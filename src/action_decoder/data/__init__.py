@@ -5,6 +5,7 @@ from .demos import cache_root, generate_demos, load_demos, record_demos
 from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
 from .lerobot_write import write_episodes
+from .relabel import relabel_episodes
 from .stats import ACTION_CONSTANT_BELOW, STD_FLOOR, compute_stats, load_stats, save_stats
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "load_demos",
     "load_stats",
     "record_demos",
+    "relabel_episodes",
     "save_stats",
     "write_episodes",
 ]

@@ -137,14 +137,20 @@ def check_action_label(action_label: str, action_noise: float) -> None:
                          f"got --action-noise {action_noise!r}")
 
 
-def _continuation(env, expert, action: np.ndarray) -> np.ndarray:
-    """``[LOOKAHEAD, D]``: ``action`` and the clean expert's next actions from the env's current
-    state; the env is left as it was. Past Meta-World's step cap the last action is held."""
+def expert_continuation(env, expert, prefix: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:
+    """``[LOOKAHEAD, D]``: the rows of ``prefix [d, D]`` executed from the env's current state, then the
+    clean expert's actions from the state they reach (with d = 0, from ``obs``, the current observation);
+    the env is left as it was. Past Meta-World's step cap the last action is held."""
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS, restore_state, save_state
 
-    saved, actions = save_state(env), [action]
+    if len(prefix) == 0 and obs is None:
+        raise ValueError("expert_continuation: an empty prefix needs obs, the observation the expert starts from")
+    saved, actions, executed = save_state(env), list(prefix) or [expert(obs)], 0
     while len(actions) < LOOKAHEAD and env.unwrapped.curr_path_length < MAX_EPISODE_STEPS:
-        actions.append(expert(env.step(actions[-1])[0]))
+        obs = env.step(actions[executed])[0]
+        executed += 1
+        if executed == len(actions):
+            actions.append(expert(obs))
     restore_state(env, saved)
     return np.stack(actions + [actions[-1]] * (LOOKAHEAD - len(actions)))
 
@@ -171,7 +177,7 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observ
         clean = action
         if action_noise > 0:
             if action_label == "expert":
-                continuations.append(_continuation(env, expert, action))      # [LOOKAHEAD, D]
+                continuations.append(expert_continuation(env, expert, action[None]))   # [LOOKAHEAD, D]
             action = np.clip(action + action_noise * noise.standard_normal(action.shape), -1.0, 1.0)
         actions.append(clean if action_label == "expert" else action)
         obs, reward, _, _, info = env.step(action.astype(np.float32))

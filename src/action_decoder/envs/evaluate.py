@@ -109,6 +109,7 @@ def evaluate(
     rtc: bool = False,
     camera_rig: Callable[[SeededLayoutEnv], dict] | None = None,
     n_obs_steps: int = 1,
+    layout_seeds: list[int] | None = None,
 ) -> dict:
     """Run ``episodes`` receding-horizon episodes: execute the first ``n_action_steps``
     actions of each chunk (clipped to [-1, 1]), then re-plan from the new state.
@@ -130,6 +131,8 @@ def evaluate(
     ``n_obs_steps`` n > 1 stacks each env's last n observations (`history.ObservationHistory`, reset
     at each episode start, where the first observation is repeated); the rig then renders the n
     observations up to each plan.
+    ``layout_seeds`` (one per episode) replaces the evaluation layouts ``eval_seeds(seed, episodes)``:
+    `data.relabel` rolls a policy out on demonstration layouts so.
     ``record=True`` adds ``trajectories``: per episode the hand positions ``[T, 3]`` (obs[0:3]) and
     the goal (obs[36:39]). ``on_step(episode, env)`` is called after each reset and after each step
     of an episode, before the next reset of its env (``envs.render.EpisodeCamera`` films episodes so).
@@ -156,9 +159,12 @@ def evaluate(
     if camera_rig is not None and not _takes_keys(policy_fn, {"images"}):
         raise ValueError("camera_rig: expected a policy_fn that takes an images keyword (see PolicyFn), "
                          f"got {getattr(policy_fn, '__name__', type(policy_fn).__name__)} without it")
+    if layout_seeds is not None and (len(layout_seeds) != episodes or
+                                     not all(isinstance(x, (int, np.integer)) and x >= 0 for x in layout_seeds)):
+        raise ValueError(f"layout_seeds: expected {episodes} integers >= 0 (one per episode), got {layout_seeds!r}")
     envs = _borrow_envs(name, min(num_envs, episodes))
 
-    seeds = eval_seeds(seed, episodes)
+    seeds = eval_seeds(seed, episodes) if layout_seeds is None else [int(x) for x in layout_seeds]
     successes, lengths, returns = [False] * episodes, [0] * episodes, [0.0] * episodes
     hands: list[list[np.ndarray]] = [[] for _ in range(episodes)]
     goals: list[np.ndarray | None] = [None] * episodes
