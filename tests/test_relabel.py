@@ -98,7 +98,8 @@ def test_cli_record_train_relabel_then_train_on_the_aggregate(tmp_path, monkeypa
     # Bad input: one line naming the option; nothing written.
     for extra, words in ((["--seed", "0"], "--seed: layouts 0..1 of --seed 0 are already episodes"),
                          (["--delays", "5"], "--delays: expected at most --n-action-steps=4"),
-                         (["--delays", "2", "2"], "--delays: expected distinct integers >= 0")):
+                         (["--delays", "2", "2"], "--delays: expected distinct integers >= 0"),
+                         (["--n-action-steps", "20"], "--n-action-steps: expected 1..16 (the chunk length), got 20")):
         capsys.readouterr()
         assert cli.main(args + ["--output-dir", str(tmp_path / "bad")] + extra) == 2
         err = capsys.readouterr().err.strip()

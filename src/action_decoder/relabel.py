@@ -101,7 +101,9 @@ def run_relabel(cfg: RelabelConfig) -> Path:
     if (pc.extra.get("tasks") or [task])[0] != task:
         raise ValueError(f"--checkpoint: trained on {pc.extra['tasks'][0]}, but --dataset holds {task}")
     n_exec = cfg.n_action_steps or pc.n_action_steps
-    if n_exec > pc.action_chunk_size or max(cfg.delays) > n_exec or n_exec + max(cfg.delays) > pc.action_chunk_size:
+    if n_exec > pc.action_chunk_size:
+        raise ValueError(f"--n-action-steps: expected 1..{pc.action_chunk_size} (the chunk length), got {n_exec}")
+    if max(cfg.delays) > n_exec or n_exec + max(cfg.delays) > pc.action_chunk_size:
         raise ValueError(f"--delays: expected at most --n-action-steps={n_exec} and n_action_steps + delay <= the "
                          f"chunk length {pc.action_chunk_size}, got {cfg.delays}")
     if pc.action_chunk_size > LOOKAHEAD:
