@@ -290,3 +290,51 @@ def test_the_reader_checks_the_continuations_declared_shape(tmp_path):
     with pytest.raises(ValueError, match=r"info.json: feature 'action.continuation' expected shape \[4, 2\] "
                                          r"\(8 values per frame, action width 2\), got \[2, 4\]$"):
         load_dataset(root)
+
+
+def test_prefix_lengths_round_trip_beside_the_continuations_and_bad_ones_are_one_line(tmp_path):
+    """``action.prefix_length`` (relabelled plans: the committed rows each continuation starts with)."""
+    import torch
+
+    from action_decoder.data import PREFIX_LENGTH, ChunkDataset
+    from action_decoder.train import _batch
+
+    episodes = _episodes(np.random.default_rng(0), [5, 6])
+    for e, ep in enumerate(episodes):
+        ep[PREFIX_LENGTH] = np.arange(len(ep["action"])) % (2 + e)                       # 0..1, then 0..2
+    root = write_episodes(tmp_path / "ds", episodes, ["a", "b"], 10, data_file_size_in_mb=1e-3)
+    ds = load_dataset(root)
+    np.testing.assert_array_equal(ds.prefix_lengths, [0, 1, 0, 1, 0, 0, 1, 2, 0, 1, 2])
+    assert ds.prefix_lengths.dtype == np.int64
+    assert json.loads((root / "meta" / "info.json").read_text())["features"][PREFIX_LENGTH]["dtype"] == "int64"
+    np.testing.assert_array_equal(ds.select([1]).prefix_lengths, [0, 1, 2, 0, 1, 2])
+    items = ChunkDataset(ds, 3)
+    assert [items[i]["rtc_delay"] for i in (5, 7)] == [0, 2] and _batch(items, torch.tensor([7, 4, 3]), 1, torch.device(
+        "cpu"))["rtc_delays"].tolist() == [2, 0, 1]                  # what training hands `compute_loss`
+    assert "rtc_delay" not in ChunkDataset(
+        load_dataset(write_episodes(tmp_path / "plain", _episodes(np.random.default_rng(0), [5]), ["a", "b"], 10)), 3)[0]
+    with pytest.raises(ValueError, match=r"^horizon: expected more than the 2 committed rows the dataset's "
+                                         r"action.prefix_length gives a frame \(rows must remain to learn\), got 2$"):
+        ChunkDataset(ds, 2)
+    for change, words in (
+            (lambda eps: eps[1].update({PREFIX_LENGTH: np.full(6, 4)}),
+             r"episode 1 action.prefix_length expected integers \[6\] in 0\.\.3 \(rows of action.continuation\), "
+             r"got int64 \[6\] in 4\.\.4$"),
+            (lambda eps: eps[0].update({PREFIX_LENGTH: np.zeros(5, np.float32)}), r"got float32 \[5\] in 0\.0\.\.0\.0$"),
+            (lambda eps: [ep.pop(CONTINUATION) for ep in eps],
+             r"action.prefix_length counts rows of action.continuation; expected both, got no action.continuation$"),
+            (lambda eps: eps[0].pop(PREFIX_LENGTH), r"action.prefix_length expected in every episode or in none")):
+        bad = [dict(ep) for ep in episodes]
+        change(bad)
+        with pytest.raises(ValueError, match=words) as err:
+            write_episodes(tmp_path / "bad", bad, ["a", "b"], 10)
+        assert "\n" not in str(err.value) and not (tmp_path / "bad").exists()
+    # A file whose column is edited outside the writer is refused by the reader, naming episode and frame.
+    path = sorted((root / "data").rglob("*.parquet"))[-1]
+    table = pq.read_table(path)
+    cells = table[PREFIX_LENGTH].to_numpy().copy()
+    cells[-1] = 9
+    pq.write_table(table.set_column(table.schema.get_field_index(PREFIX_LENGTH), PREFIX_LENGTH, pa.array(cells)), path)
+    with pytest.raises(ValueError, match=r"column 'action.prefix_length' expected 0\.\.3 \(rows of "
+                                         r"action.continuation\), got 9 in episode 1 \(frame 5\)$"):
+        load_dataset(root)

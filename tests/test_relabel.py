@@ -30,6 +30,7 @@ def test_labels_are_the_committed_prefix_then_the_expert_from_where_it_leads():
         env = make_env("reach-v3", 0)
         obs, executed, prev = env.reset(seed=ep["seed"])[0], [], None
         assert len(ep["observation.state"]) == 5           # plans at steps 0, 3, 6, 9, 12 of 14
+        assert ep["action.prefix_length"].tolist() == [0, D, D, D, D]     # the first plan has no prefix
         for k, (state, label) in enumerate(zip(ep["observation.state"], ep["action.continuation"])):
             np.testing.assert_allclose(state, obs, atol=1e-6)                         # planned from here
             chunk = stand_in(obs[None], np.zeros(1))[0]
@@ -88,6 +89,10 @@ def test_cli_record_train_relabel_then_train_on_the_aggregate(tmp_path, monkeypa
     np.testing.assert_array_equal(both.actions[:n], prior.actions)
     np.testing.assert_array_equal(both.continuations[:n, 0], prior.actions)       # a demo's own next actions
     assert both.continuations.shape[1:] == (LOOKAHEAD, 4)
+    # Committed rows per label: none for the demonstrations and the delay-0 round, 2 after each first plan.
+    starts = both.episode_starts
+    assert both.prefix_lengths[:starts[3]].tolist() == [0] * starts[3]
+    assert both.prefix_lengths[starts[3]:].tolist() == [0] + [2] * (len(both.actions) - starts[3] - 1)
     rounds = json.loads((out / "meta" / "info.json").read_text())["source"]["relabel"][0]["rounds"]
     assert [(r["delay"], r["rtc_mode"], r["layouts"]) for r in rounds] == [(0, "trained", [1000, 1000]),
                                                                            (2, "trained", [1001, 1001])]
@@ -106,6 +111,11 @@ def test_cli_record_train_relabel_then_train_on_the_aggregate(tmp_path, monkeypa
         assert "\n" not in err and words in err, err
         assert not (tmp_path / "bad").exists()
     capsys.readouterr()
+    assert cli.main(["train", "--dataset", str(out), "--rtc-max-delay", "1", "--steps", "1", "--eval-episodes", "0",
+                     "--output-dir", str(tmp_path / "run4")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--rtc-max-delay: " in err and "committed prefixes of up to 2 rows" in err and \
+        err.endswith("expected at least 2, got 1"), err
     assert cli.main(["train", "--dataset", str(out), "--n-obs-steps", "2", "--steps", "1", "--eval-episodes", "0",
                      "--output-dir", str(tmp_path / "run3")]) == 2
     assert "--n-obs-steps: " in capsys.readouterr().err

@@ -158,6 +158,64 @@ def test_flow_matching_loss_draws_its_delays_from_the_delay_distribution():
     torch.testing.assert_close(loss, want, rtol=1e-12, atol=0)
 
 
+def test_given_delays_fix_those_rows_prefixes_and_leave_the_others_drawn():
+    """A relabelled frame's committed rows (`rtc_delays` > 0) are its prefix; rows with 0 keep the same draws
+    as without `rtc_delays`, so a dataset without committed prefixes trains exactly as before."""
+    a = torch.randn(256, H, D, dtype=torch.float64)
+    oracle = lambda x, t: torch.zeros_like(x)                                # noqa: E731
+    given = torch.tensor([0, 3, 1, 0] * 64)
+    for decoder in ("flow_matching", "mean_flow"):
+        seen = []
+
+        def velocity(x, t, r=None):
+            seen.append((t == 1.0).sum(1))                                        # [B] clean rows per chunk
+            return torch.zeros_like(x)
+
+        g = torch.Generator().manual_seed(5)
+        if decoder == "flow_matching":
+            flow_matching_loss(velocity, a, g, rtc_max_delay=4, rtc_delay_dist="exp", rtc_delays=given)
+        else:
+            meanflow_loss(velocity, a, g, target="split", rtc_max_delay=4, rtc_delay_dist="exp", rtc_delays=given)
+        g = torch.Generator().manual_seed(5)
+        if decoder == "flow_matching":
+            torch.rand(256, generator=g, dtype=torch.float64)
+        else:
+            sample_meanflow_times(256, 0.5, 0.4, 1.0, g, None, torch.float64, "logit_normal")
+        torch.randn(a.shape, generator=g, dtype=torch.float64)
+        drawn = sample_delays(256, 4, g, dist="exp")
+        assert torch.equal(seen[0], torch.where(given > 0, given, drawn)), decoder
+    loss = flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4, rtc_delay_dist="exp",
+                              rtc_delays=torch.full((256,), 4))
+    g = torch.Generator().manual_seed(3)
+    torch.rand(256, generator=g, dtype=torch.float64)
+    e = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(loss, (a - e)[:, 4:].square().mean(), rtol=1e-12, atol=0)
+    zeros = flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4, rtc_delay_dist="exp",
+                               rtc_delays=torch.zeros(256, dtype=torch.int64))
+    assert torch.equal(zeros, flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4,
+                                                 rtc_delay_dist="exp"))
+    for bad, words in ((torch.full((256,), 5), r"rtc_delays: expected integers \[256\] in 0\.\.4 \(rtc_max_delay\), "
+                                               r"got torch.int64 \[256\]$"),
+                       (torch.zeros(256), "got torch.float32 "), (torch.zeros(3, dtype=torch.int64), r"\[3\]$")):
+        with pytest.raises(ValueError, match=words):
+            flow_matching_loss(oracle, a, rtc_max_delay=4, rtc_delays=bad)
+
+
+def test_the_policy_trains_given_delays_and_refuses_bad_ones_in_one_line():
+    policy = tiny(rtc_max_delay=2).train()
+    batch = {"state": torch.randn(8, 6), "actions": torch.randn(8, H, D)}
+    loss = lambda **kw: float(policy.compute_loss({**batch, **kw}, torch.Generator().manual_seed(0)).loss.detach())  # noqa: E731
+    assert loss(rtc_delays=torch.zeros(8, dtype=torch.int64)) == loss()
+    assert loss(rtc_delays=torch.full((8,), 2)) != loss()
+    for value, words in ((torch.full((8,), 3), r"got torch.int64 \[8\] in 3\.\.3$"),
+                         (torch.ones(8), r"got torch.float32 \[8\]$"), ([1] * 8, "got list$")):
+        with pytest.raises(ValueError, match=r"^batch\['rtc_delays'\]: expected integers \[8\] in 0\.\.2 "
+                                             r"\(committed rows per chunk; rtc_max_delay=2\), " + words):
+            loss(rtc_delays=value)
+    with pytest.raises(ValueError, match=r"rtc_max_delay=0, so training-time RTC is off\), got torch.int64"):
+        tiny().train().compute_loss({**batch, "rtc_delays": torch.ones(8, dtype=torch.int64)})
+
+
 def test_balanced_rows_weight_each_row_by_the_inverse_share_of_chunks_that_train_it():
     """Row j is in the loss when d ≤ j: weights 1/P(d ≤ j) (uniform on 0..4: 5, 2.5, 5/3, 1.25, then 1) make
     each row's expected weight over the delays the plain loss's, 1/(H·D) per entry."""

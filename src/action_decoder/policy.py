@@ -266,8 +266,13 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: Mapping[str, Any], generator: Optional[torch.Generator] = None) -> PolicyOutput:
         """The decoder's training loss on `batch` ("state", "actions" [B, H, D] in environment units, and
-        its conditioning); times and noise drawn from `generator`. `PolicyOutput.loss` and `.metrics`."""
+        its conditioning); times and noise drawn from `generator`. `PolicyOutput.loss` and `.metrics`.
+
+        With training-time RTC (`rtc_max_delay` M > 0) an optional "rtc_delays" [B] (integers in 0..M) fixes
+        how many of each chunk's first actions are its committed prefix (a relabelled dataset's
+        `action.prefix_length`); 0 leaves that row's delay drawn from `rtc_delay_dist`."""
         self._validate(batch, need_actions=True)
+        delays = self._rtc_delays(batch)
         if generator is not None and not isinstance(generator, torch.Generator):
             raise ValueError(f"generator: the loss draws its times and noise from one torch.Generator (or None), "
                              f"got {type(generator).__name__} (per-row generators are for sampling)")
@@ -277,7 +282,8 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         if cfg.decoder_type == "flow_matching":
             loss = flow_matching_loss(lambda x, t, **c: self._flow_net(x, t, t, **c), actions, generator, cond,
                                       rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
-                                      rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise)
+                                      rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
+                                      rtc_delays=delays)
         elif cfg.decoder_type == "mean_flow":
             weights = self.model.head.weight.dtype
             if (cfg.meanflow_target == "identity" and cfg.meanflow_dudt == "finite_difference"
@@ -290,11 +296,27 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
                                  dudt=cfg.meanflow_dudt, target=cfg.meanflow_target,
                                  rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
-                                 rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise)
+                                 rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
+                                 rtc_delays=delays)
         else:
             loss = ddpm_loss(lambda x, s, **c: self._net(x, self._ddpm_time(s), self._ddpm_time(s), **c),
                              actions, cfg, generator, cond)
         return PolicyOutput(loss=loss, metrics={"loss": loss.detach()})
+
+    def _rtc_delays(self, batch: Mapping[str, Any]) -> Optional[Tensor]:
+        """`batch["rtc_delays"]` [B] checked against `rtc_max_delay`, on the weights' device; None without it."""
+        given, m = batch.get("rtc_delays"), self.config.rtc_max_delay
+        if given is None:
+            return None
+        b = batch["state"].shape[0]
+        if not isinstance(given, Tensor) or given.shape != (b,) or given.is_floating_point() or given.is_complex() \
+                or given.dtype == torch.bool or (given.numel() and not 0 <= int(given.min()) <= int(given.max()) <= m):
+            got = (f"{given.dtype} {list(given.shape)}" + (f" in {int(given.min())}..{int(given.max())}" if
+                   given.numel() and not given.is_floating_point() else "")) if isinstance(given, Tensor) \
+                else type(given).__name__
+            raise ValueError(f"batch['rtc_delays']: expected integers [{b}] in 0..{m} (committed rows per chunk; "
+                             f"rtc_max_delay={m}{', so training-time RTC is off' if not m else ''}), got {got}")
+        return given.to(next(self.parameters()).device, torch.int64)
 
     # ------------------------------------------------------------------ sampling
     def resolve_sampler(self, sampler: Optional[str]) -> str:

@@ -115,8 +115,10 @@ def run_relabel(cfg: RelabelConfig) -> Path:
         actions = prior.actions[start:start + n]                                           # [L, D]
         follow = np.minimum(np.arange(n)[:, None] + np.arange(LOOKAHEAD), n - 1)           # [L, LOOKAHEAD]
         labels = prior.continuations[start:start + n] if prior.continuations is not None else actions[follow]
+        committed = prior.prefix_lengths[start:start + n] if prior.prefix_lengths is not None else np.zeros(n, np.int64)
         episodes.append({"observation.state": prior.states[start:start + n], "action": actions,
-                         "action.continuation": labels[:, :LOOKAHEAD], "task_index": 0, "seed": known[e]})
+                         "action.continuation": labels[:, :LOOKAHEAD], "action.prefix_length": committed,
+                         "task_index": 0, "seed": known[e]})
     generator = torch.Generator().manual_seed(cfg.seed)
     rounds = []
     for i, delay in enumerate(cfg.delays):

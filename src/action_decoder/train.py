@@ -204,6 +204,11 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
         raise ValueError(f"--n-obs-steps: {cfg.dataset} holds relabelled plans (`action-decoder relabel`), frames "
                          f"n_action_steps apart rather than consecutive observations; expected 1, got {cfg.n_obs_steps}")
     episodes = load_dataset(cfg.dataset, cameras, cfg.image_size)
+    committed = 0 if episodes.prefix_lengths is None else int(episodes.prefix_lengths.max(initial=0))
+    if cfg.rtc_max_delay < committed:
+        raise ValueError(f"--rtc-max-delay: {cfg.dataset}'s labels start with committed prefixes of up to {committed} "
+                         f"rows (action.prefix_length, `action-decoder relabel`), which training feeds in as the clean "
+                         f"prefix; expected at least {committed}, got {cfg.rtc_max_delay}")
     _say_cameras(episodes, quiet)
     n = episodes.num_episodes
     env = closed_loop_env(cfg)
@@ -249,7 +254,8 @@ def validation_metrics(policy: ActionDecoderPolicy, val, num_tasks: int, device:
         items = default_collate([val[i] for i in range(start, min(start + VAL_BATCH, len(val)))])
         batch = {"state": items["state"].to(device), "actions": items["actions"].to(device),   # [B, S], [B, H, D]
                  **{k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()},
-                 **({"images": items["images"].to(device)} if "images" in items else {})}   # [B, N_cam, 3, S, S]
+                 **({"images": items["images"].to(device)} if "images" in items else {}),   # [B, N_cam, 3, S, S]
+                 **({"rtc_delays": items["rtc_delay"].to(device)} if "rtc_delay" in items else {})}   # [B]
         draws = [float(policy.compute_loss(batch, loss_gen).loss) for _ in range(VAL_NOISE_DRAWS)]
         loss_sum += sum(draws) / VAL_NOISE_DRAWS * len(items["state"])
         chunk = policy.sample(batch, generator=sample_gen).actions                 # [B, H, D]
@@ -385,6 +391,8 @@ def _batch(ds, idx: torch.Tensor, num_tasks: int, device: torch.device, shift: f
     batch.update({k: v.to(device) for k, v in task_context(items["task_index"], num_tasks).items()})
     if "images" in items:
         batch["images"] = items["images"].to(device)                       # [B, (n,) N_cam, 3, S, S] uint8
+    if "rtc_delay" in items:
+        batch["rtc_delays"] = items["rtc_delay"].to(device)                # [B] committed rows (0: drawn)
     return batch
 
 

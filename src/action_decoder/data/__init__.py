@@ -2,7 +2,7 @@
 
 from .chunks import ChunkDataset
 from .demos import cache_root, generate_demos, load_demos, record_demos
-from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
+from .episodes import ACTION, CONTINUATION, PREFIX_LENGTH, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
 from .lerobot_write import write_episodes
 from .relabel import relabel_episodes
@@ -11,6 +11,7 @@ from .stats import ACTION_CONSTANT_BELOW, STD_FLOOR, compute_stats, load_stats, 
 __all__ = [
     "ACTION",
     "CONTINUATION",
+    "PREFIX_LENGTH",
     "STATE",
     "ACTION_CONSTANT_BELOW",
     "STD_FLOOR",

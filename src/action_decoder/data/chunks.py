@@ -3,7 +3,10 @@
 Near an episode's end the chunk is completed by repeating the last action and marked in
 ``action_is_pad`` (LeRobot's convention), so every frame is a training sample and the
 loss can ignore, or keep, the padded part. A dataset that stores each frame's own
-continuation (demonstrations recorded with noise) gives its first H actions instead.
+continuation (demonstrations recorded with noise) gives its first H actions instead, and one that
+also counts the committed rows each continuation starts with (``action.prefix_length``, written by
+``relabel``) gives that count as ``rtc_delay``: training-time RTC then feeds exactly those rows in as
+the chunk's clean prefix.
 
 With observation history (``n_obs_steps`` n > 1) each sample holds the frame's observation and the
 n − 1 before it, as LeRobot's ``observation_delta_indices`` = range(1 − n, 1) gives them: before an
@@ -18,7 +21,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .episodes import CONTINUATION, EpisodeDataset
+from .episodes import CONTINUATION, PREFIX_LENGTH, EpisodeDataset
 
 
 class ChunkDataset(Dataset):
@@ -27,7 +30,8 @@ class ChunkDataset(Dataset):
     order) of the frame the chunk starts at, when the dataset has cameras. With ``n_obs_steps`` n > 1
     the observations gain a step axis, oldest first: ``"state": [n, S]``, ``"images": [n, N_cam, 3,
     H_img, W_img]``, and ``"observation_is_pad": [n] bool`` (True: the episode's first frame standing in
-    for a frame before it).
+    for a frame before it). Datasets with ``prefix_lengths`` add ``"rtc_delay": int``, the committed rows
+    the chunk starts with (0: none; training-time RTC draws the delay).
 
     ``episodes`` keeps the first k episodes (an int) or those at given positions, e.g. for
     demo-count experiments; for several tasks pass ``concat_datasets([...])``.
@@ -51,6 +55,12 @@ class ChunkDataset(Dataset):
                 raise ValueError(f"horizon: expected at most the {dataset.continuations.shape[1]} actions the "
                                  f"dataset's {CONTINUATION} holds per frame, got {horizon}")
             self.continuations = torch.from_numpy(dataset.continuations[:, :horizon])   # [N, H, D]
+        self.prefix_lengths = None
+        if dataset.prefix_lengths is not None:
+            if len(dataset.prefix_lengths) and dataset.prefix_lengths.max() >= horizon:
+                raise ValueError(f"horizon: expected more than the {dataset.prefix_lengths.max()} committed rows the "
+                                 f"dataset's {PREFIX_LENGTH} gives a frame (rows must remain to learn), got {horizon}")
+            self.prefix_lengths = dataset.prefix_lengths.tolist()
         self.images = [torch.from_numpy(v) for v in (dataset.images or {}).values()]   # N_cam × [N, H, W, 3]
         self.task_index = dataset.task_index.tolist()
         ends = dataset.episode_starts + dataset.episode_lengths - 1
@@ -77,6 +87,8 @@ class ChunkDataset(Dataset):
         if self.continuations is not None:
             item = {"state": self.states[i], "actions": self.continuations[i],
                     "action_is_pad": torch.zeros(self.horizon, dtype=torch.bool), "task_index": self.task_index[i]}
+            if self.prefix_lengths is not None:
+                item["rtc_delay"] = self.prefix_lengths[i]
         else:
             wanted = i + self.offsets
             last = self.last_frame[i]

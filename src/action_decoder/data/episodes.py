@@ -20,13 +20,18 @@ CONTINUATION = "action.continuation"
 CONSTANT_BELOW = {ACTION: ACTION_CONSTANT_BELOW}   # data/stats.py: why actions keep small stds
 """Optional per-frame ``[K, D]``: the demonstrator's own next K actions from this frame's state
 (recorded with noise, the frames that follow do not show them; see ``demos.py``)."""
+PREFIX_LENGTH = "action.prefix_length"
+"""Optional per-frame int, with ``CONTINUATION``: how many of the continuation's first rows are a committed
+prefix the policy executed (``relabel.py``); the rest continue from the state that prefix reaches. 0: the
+whole continuation is the demonstrator's from this frame's state."""
 
 
 @dataclass
 class EpisodeDataset:
     """Frames ``states [N, S]``, ``actions [N, D]``, ``task_index [N]`` stored episode after
     episode; episode ``e`` spans ``episode_starts[e] : episode_starts[e] + episode_lengths[e]``.
-    ``continuations [N, K, D]``, when present, are the chunk targets (``CONTINUATION``).
+    ``continuations [N, K, D]``, when present, are the chunk targets (``CONTINUATION``);
+    ``prefix_lengths [N]`` (int64, with them, ``PREFIX_LENGTH``) count the committed rows each starts with.
 
     ``images``, when present: camera key (``observation.images.<name>``) -> uint8 ``[N, H, W, 3]``,
     one frame per dataset frame (the observation ``states[i]`` was recorded with), every camera at
@@ -44,6 +49,7 @@ class EpisodeDataset:
     stats: dict = field(default_factory=dict)
     continuations: np.ndarray | None = None
     images: dict[str, np.ndarray] | None = None
+    prefix_lengths: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.states = np.ascontiguousarray(self.states, dtype=np.float32)
@@ -53,6 +59,8 @@ class EpisodeDataset:
             if self.continuations.ndim != 3 or self.continuations.shape[0::2] != self.actions.shape:
                 raise ValueError(f"EpisodeDataset.continuations: expected [frames, K, action dim] = "
                                  f"[{len(self.actions)}, K, {self.actions.shape[1]}], got {self.continuations.shape}")
+        if self.prefix_lengths is not None:
+            self._check_prefix_lengths()
         self.task_index = np.asarray(self.task_index, dtype=np.int64)
         self.episode_lengths = np.asarray(self.episode_lengths, dtype=np.int64)
         n = int(self.episode_lengths.sum())
@@ -83,6 +91,16 @@ class EpisodeDataset:
             self.episode_ids = np.arange(len(self.episode_lengths))
         if not self.stats:
             self.stats = compute_stats({STATE: self.states, ACTION: self.actions}, constant_below=CONSTANT_BELOW)
+
+    def _check_prefix_lengths(self) -> None:
+        given = np.asarray(self.prefix_lengths)
+        k = None if self.continuations is None else self.continuations.shape[1]
+        if k is None or given.shape != (len(self.actions),) or not np.issubdtype(given.dtype, np.integer) or \
+                (len(given) and not 0 <= given.min() <= given.max() < k):
+            raise ValueError(f"EpisodeDataset.prefix_lengths: expected integers [{len(self.actions)}] in 0..K-1 beside "
+                             f"continuations [frames, K, D] (K = {k}), got {given.dtype} {list(given.shape)}"
+                             f"{f' in {given.min()}..{given.max()}' if given.size and np.issubdtype(given.dtype, np.number) else ''}")
+        self.prefix_lengths = given.astype(np.int64)
 
     @property
     def cameras(self) -> list[str]:
@@ -115,6 +133,7 @@ class EpisodeDataset:
             list(self.tasks), self.fps, self.episode_ids[picks], self.root,
             continuations=None if self.continuations is None else self.continuations[frames],
             images=None if self.images is None else {k: v[frames] for k, v in self.images.items()},
+            prefix_lengths=None if self.prefix_lengths is None else self.prefix_lengths[frames],
         )
 
 
@@ -147,4 +166,6 @@ def concat_datasets(datasets: Sequence[EpisodeDataset]) -> EpisodeDataset:
         continuations=None if kinds == {None} else np.concatenate([d.continuations for d in datasets]),
         images=None if datasets[0].images is None else {k: np.concatenate([d.images[k] for d in datasets])
                                                          for k in datasets[0].cameras},
+        prefix_lengths=None if all(d.prefix_lengths is None for d in datasets) else np.concatenate(
+            [np.zeros(d.num_frames, np.int64) if d.prefix_lengths is None else d.prefix_lengths for d in datasets]),
     )

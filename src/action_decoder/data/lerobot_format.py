@@ -34,7 +34,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset
+from .episodes import ACTION, CONTINUATION, PREFIX_LENGTH, STATE, EpisodeDataset
 from .stats import read_json
 from .video import decode_png, image_hw, read_frames
 
@@ -187,8 +187,20 @@ def _read_frames(path: Path, image_keys: tuple[str, ...] = ()) -> pa.Table:
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {names}")
     return _read_parquet(path, "a parquet episode file",
-                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", "timestamp", CONTINUATION)
+                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", "timestamp", CONTINUATION, PREFIX_LENGTH)
                           + image_keys])
+
+
+def _prefix_lengths(table: pa.Table, path: Path, has_continuation: bool) -> np.ndarray | None:
+    """The ``action.prefix_length`` column [N] int64, or None without it; it needs ``action.continuation``."""
+    if PREFIX_LENGTH not in table.column_names:
+        return None
+    column = table[PREFIX_LENGTH]
+    if not has_continuation or not pa.types.is_integer(column.type):
+        raise ValueError(f"{path}: column {PREFIX_LENGTH!r} expected integers beside {CONTINUATION!r} (the committed "
+                         f"rows each continuation starts with), got {column.type}"
+                         f"{'' if has_continuation else f' and no {CONTINUATION!r}'}")
+    return column.to_numpy().astype(np.int64)
 
 
 def select_cameras(info: dict, cameras, root: Path) -> list[str]:
@@ -300,6 +312,7 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
         states, actions = _matrix(table, STATE, path), _matrix(table, ACTION, path)
         task = _task_index(table, path)
         more = _matrix(table, CONTINUATION, path) if CONTINUATION in table.column_names else None
+        committed = _prefix_lengths(table, path, more is not None)
         times.append(table["timestamp"].to_numpy().astype(np.float64) if "timestamp" in table.column_names else
                      table["frame_index"].to_numpy() / float(info.get("fps") or 1))
         for key in image_keys:
@@ -308,14 +321,15 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
                                  f"{table.column_names}")
             pictures[key].append(_image_column(table, key, path, size, root))
         tables.append((states, actions, table["episode_index"].to_numpy(), table["frame_index"].to_numpy(), task,
-                       more))
-    widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1]) for s, a, *_, c in tables},
-                    key=str)   # None (no continuation) does not compare with ints
+                       more, committed))
+    widths = sorted({(s.shape[1], a.shape[1], None if c is None else c.shape[1], p is None)
+                     for s, a, *_, c, p in tables}, key=str)   # None (no continuation) does not compare with ints
     if len(widths) > 1:
-        raise ValueError(f"{root}: expected the same (state, action, {CONTINUATION}) widths in every file, "
-                         f"got {widths}")
+        raise ValueError(f"{root}: expected the same (state, action, {CONTINUATION}) widths and {PREFIX_LENGTH} "
+                         f"present in every file or none, got {widths} (widths, {PREFIX_LENGTH} absent)")
     states, actions, episode, frame, task = (np.concatenate(parts) for parts in list(zip(*tables))[:5])
     continuations = None if tables[0][5] is None else np.concatenate([t[5] for t in tables])
+    prefix_lengths = None if tables[0][6] is None else np.concatenate([t[6] for t in tables])
 
     order = np.lexsort((frame, episode))
     states, actions, episode, frame, task = states[order], actions[order], episode[order], frame[order], task[order]
@@ -330,6 +344,13 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
                              f"[{width // actions.shape[1]}, {actions.shape[1]}] ({width} values per frame, "
                              f"action width {actions.shape[1]}), got {declared}")
         continuations = continuations[order].reshape(len(actions), -1, actions.shape[1])  # [N, K, D]
+        if prefix_lengths is not None:
+            prefix_lengths = prefix_lengths[order]
+            if not ((0 <= prefix_lengths) & (prefix_lengths < continuations.shape[1])).all():
+                row = int(np.argmax((prefix_lengths < 0) | (prefix_lengths >= continuations.shape[1])))
+                raise ValueError(f"{root}: column {PREFIX_LENGTH!r} expected 0..{continuations.shape[1] - 1} (rows of "
+                                 f"{CONTINUATION}), got {prefix_lengths[row]} in episode {episode[row]} (frame "
+                                 f"{frame[row]})")
     ids, starts, lengths = np.unique(episode, return_index=True, return_counts=True)
     for i, start, length in zip(ids, starts, lengths):
         if not np.array_equal(frame[start:start + length], np.arange(length)):
@@ -362,4 +383,4 @@ def load_dataset(root: str | Path, cameras: list[str] | None = None,
     images = {k: np.concatenate(pictures[k])[order] if k in image_keys else
               _video_frames(root, info, version, k, episode, timestamps, size) for k in keys}
     return EpisodeDataset(states, actions, task, lengths, tasks, info.get("fps"), ids, root, {}, continuations,
-                          images or None)
+                          images or None, prefix_lengths)

@@ -11,7 +11,7 @@
 The schema follows what LeRobot 0.4.4 itself writes (column types, list field names, the
 ``huggingface`` schema metadata of data files, the pandas index column of ``tasks.parquet``).
 Columns beyond LeRobot's own (``next.reward``, ``next.success``, ``next.done``,
-``action.continuation``) are declared in ``info.json`` like any other feature, so LeRobot loads
+``action.continuation``, ``action.prefix_length``) are declared in ``info.json`` like any other feature, so LeRobot loads
 them too. ``action.continuation`` (``[K, D]`` per frame) is stored and declared flat, shape
 ``[K·D]``: LeRobot casts a 2-d feature to an Arrow extension type that plain list columns do not
 match, and a flat vector loads everywhere; our reader reshapes it by the action width.
@@ -39,7 +39,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .episodes import ACTION, CONTINUATION, STATE
+from .episodes import ACTION, CONTINUATION, PREFIX_LENGTH, STATE
 from .video import write_video
 
 CODEBASE_VERSION = "v3.0"
@@ -52,8 +52,9 @@ VIDEO_COLUMNS = {"chunk_index": pa.int64(), "file_index": pa.int64(), "from_time
                  "to_timestamp": pa.float64()}
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 SCALARS = {"timestamp": "float32", "frame_index": "int64", "episode_index": "int64", "index": "int64",
-           "task_index": "int64", "next.reward": "float32", "next.success": "bool", "next.done": "bool"}
-OPTIONAL = ("next.reward", "next.success", CONTINUATION, "seed")     # per episode: all or none
+           "task_index": "int64", "next.reward": "float32", "next.success": "bool", "next.done": "bool",
+           PREFIX_LENGTH: "int64"}
+OPTIONAL = ("next.reward", "next.success", CONTINUATION, PREFIX_LENGTH, "seed")     # per episode: all or none
 ARROW = {"float32": pa.float32(), "int64": pa.int64(), "bool": pa.bool_()}
 
 
@@ -122,6 +123,8 @@ def _episode_columns(ep: dict, e: int, start: int, fps: float) -> dict[str, np.n
         columns["next.done"] = np.arange(length) == length - 1
     if CONTINUATION in ep:
         columns[CONTINUATION] = np.asarray(ep[CONTINUATION], np.float32)                  # [L, K, D]
+    if PREFIX_LENGTH in ep:
+        columns[PREFIX_LENGTH] = np.asarray(ep[PREFIX_LENGTH], np.int64)                  # [L]
     return columns
 
 
@@ -142,6 +145,8 @@ def _check(episodes: Sequence[dict], tasks: Sequence[str], fps: float) -> None:
         raise ValueError(f"write_episodes: expected {STATE} [L, S], {ACTION} [L, D] (and {CONTINUATION} [L, K, D]) "
                          f"with the same widths in every episode, got per-frame shapes {sorted(shapes, key=str)}")
     _check_images(episodes)
+    if PREFIX_LENGTH in episodes[0]:
+        _check_prefix_lengths(episodes, more)
     for e, ep in enumerate(episodes):
         keys = [k for k in (STATE, ACTION, *OPTIONAL[:-1]) if k in ep]
         length, task = len(ep[ACTION]), ep.get("task_index")
@@ -150,6 +155,20 @@ def _check(episodes: Sequence[dict], tasks: Sequence[str], fps: float) -> None:
                              f"got {[len(ep[k]) for k in keys]}")
         if not isinstance(task, (int, np.integer)) or not 0 <= task < len(tasks):
             raise ValueError(f"write_episodes: episode {e} task_index expected an int in 0..{len(tasks) - 1}, got {task!r}")
+
+
+def _check_prefix_lengths(episodes: Sequence[dict], continuation: tuple | None) -> None:
+    """``action.prefix_length``: with ``action.continuation [L, K, D]``, integers [L] in 0..K-1."""
+    if continuation is None:
+        raise ValueError(f"write_episodes: {PREFIX_LENGTH} counts rows of {CONTINUATION}; expected both, got no "
+                         f"{CONTINUATION}")
+    for e, ep in enumerate(episodes):
+        given = np.asarray(ep[PREFIX_LENGTH])
+        if not np.issubdtype(given.dtype, np.integer) or given.shape != (len(ep[ACTION]),) or \
+                not ((0 <= given) & (given < continuation[0])).all():
+            raise ValueError(f"write_episodes: episode {e} {PREFIX_LENGTH} expected integers [{len(ep[ACTION])}] in "
+                             f"0..{continuation[0] - 1} (rows of {CONTINUATION}), got {given.dtype} {list(given.shape)}"
+                             f"{f' in {given.min()}..{given.max()}' if given.size and given.dtype.kind in 'iuf' else ''}")
 
 
 def _check_images(episodes: Sequence[dict]) -> None:
@@ -190,7 +209,8 @@ def write_episodes(
 
     Each episode is a dict with ``observation.state [L, S]``, ``action [L, D]``, ``task_index``
     (int into ``tasks``, the task strings), ``next.reward [L]``, ``next.success [L]``, optional
-    ``seed`` (kept as an episode column), optional ``action.continuation [L, K, D]`` and optional
+    ``seed`` (kept as an episode column), optional ``action.continuation [L, K, D]`` (with optional
+    ``action.prefix_length [L]``, the committed rows each continuation starts with) and optional
     ``images``: ``{camera key: uint8 [L, H, W, 3]}`` (e.g. ``observation.images.corner2``; even H
     and W), written as H.264 video features.
     Without ``next.reward``/``next.success`` those columns and ``next.done`` are left out.

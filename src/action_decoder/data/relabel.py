@@ -10,8 +10,10 @@ are a function of it); in closed loop the prefix is the policy's own, often slig
 committed prefix (the d rows the plan was given; none for an episode's first plan) followed by the
 scripted expert's actions from the state that prefix reaches (`demos.expert_continuation`:
 simulated from a saved MuJoCo state and rewound). One rollout becomes one episode of plan frames,
-``n_action_steps`` control steps apart, whose ``action.continuation`` is the label, so ``train
---dataset`` cuts each frame's chunk from it as from DART demonstrations (docs/benchmarks/rtc.md).
+``n_action_steps`` control steps apart, whose ``action.continuation`` is the label and
+``action.prefix_length`` the number of committed rows it starts with, so ``train --dataset`` cuts
+each frame's chunk from it as from DART demonstrations and, with training-time RTC, feeds exactly
+those rows in as the clean prefix (docs/benchmarks/rtc.md).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from .demos import expert_continuation
-from .episodes import ACTION, CONTINUATION, STATE
+from .episodes import ACTION, CONTINUATION, PREFIX_LENGTH, STATE
 
 
 def relabel_episodes(policy_fn: Callable, task: str, layout_seeds: list[int], delay: int, n_action_steps: int,
@@ -30,7 +32,8 @@ def relabel_episodes(policy_fn: Callable, task: str, layout_seeds: list[int], de
     each layout of ``layout_seeds`` with inference ``delay`` and real-time chunking, executing
     ``n_action_steps`` actions a chunk, for at most ``max_steps`` steps an episode. Returns one episode
     per layout (``observation.state [P, S]`` at its P plans, ``action.continuation [P, LOOKAHEAD, D]``
-    their labels, ``action [P, D]`` the labels' first rows, ``seed``, ``task_index`` 0) and the
+    their labels, ``action.prefix_length [P]`` their committed rows (``delay``; 0 at the first plan),
+    ``action [P, D]`` the labels' first rows, ``seed``, ``task_index`` 0) and the
     rollouts' success rate."""
     from ..envs.metaworld_tasks import canonical_task, expert_policy
     from ..envs.evaluate import evaluate
@@ -50,7 +53,7 @@ def relabel_episodes(policy_fn: Callable, task: str, layout_seeds: list[int], de
         for b, seed in enumerate(episode_seeds.tolist()):
             prefix = prev_chunks[b, :delay] if prev_chunks is not None else chunks[b, :0]   # [d, D]
             plans[seed].append((np.asarray(states[b], np.float32),
-                                expert_continuation(envs[seed], expert, prefix, states[b])))
+                                expert_continuation(envs[seed], expert, prefix, states[b]), len(prefix)))
         return chunks
 
     result = evaluate(labelled, name, episodes=len(layout_seeds), n_action_steps=n_action_steps,
@@ -58,7 +61,8 @@ def relabel_episodes(policy_fn: Callable, task: str, layout_seeds: list[int], de
                       layout_seeds=list(layout_seeds))
     episodes = []
     for seed, rows in plans.items():
-        labels = np.stack([label for _, label in rows]).astype(np.float32)           # [P, LOOKAHEAD, D]
-        episodes.append({STATE: np.stack([state for state, _ in rows]), ACTION: labels[:, 0],
-                         CONTINUATION: labels, "task_index": 0, "seed": seed})
+        labels = np.stack([label for _, label, _ in rows]).astype(np.float32)        # [P, LOOKAHEAD, D]
+        episodes.append({STATE: np.stack([state for state, _, _ in rows]), ACTION: labels[:, 0],
+                         CONTINUATION: labels, PREFIX_LENGTH: np.array([d for *_, d in rows], np.int64),
+                         "task_index": 0, "seed": seed})
     return episodes, result["success_rate"]

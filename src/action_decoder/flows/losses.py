@@ -43,14 +43,16 @@ def _bcast(t: Tensor, like: Tensor) -> Tensor:
 
 def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Generator],
                  cond: Optional[Mapping[str, Any]], delay_dist: str = "uniform", balance_rows: bool = False,
-                 prefix_noise: float = 0.0):
+                 prefix_noise: float = 0.0, delays: Optional[Tensor] = None):
     """Training-time RTC (`flows.rtc_trained`): (fn, cond, live [B, H] or None). With max_delay > 0,
     row b's first d_b actions (d_b on 0..max_delay from `delay_dist`) are given clean at t = r = 1 (`with_clean_prefix`,
     its mask and clean actions travel in `cond` so that every row split slices them too) and `live`
     marks the other rows, the ones the loss covers: a bool mask, or with `balance_rows` their weights
     1/P(d ≤ j) (`row_weights`; 0 on the prefix), so that each row's expected weight is the plain loss's.
     `prefix_noise` σ > 0: the prefix fed in is a + σ·ε (ε ~ N(0, I), drawn after the delays), while the
-    loss targets stay a: the network learns to continue a committed prefix that is off the data."""
+    loss targets stay a: the network learns to continue a committed prefix that is off the data.
+    `delays` [B] (integers in 0..max_delay, optional): row b's d_b where delays[b] > 0 (its label's committed
+    rows, e.g. `action.prefix_length`); rows with 0 keep the drawn d_b. The draws are made either way."""
     check_max_delay(max_delay, a.shape[1])
     if isinstance(prefix_noise, bool) or not isinstance(prefix_noise, (int, float)) \
             or not 0 <= prefix_noise < float("inf"):
@@ -58,9 +60,18 @@ def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Genera
                          f"got {prefix_noise!r}")
     if delay_dist not in DELAY_DISTS:
         raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {delay_dist!r}")
+    if delays is not None and (not isinstance(delays, Tensor) or delays.shape != (a.shape[0],)
+                               or delays.is_floating_point() or delays.dtype == torch.bool
+                               or (delays.numel() and not 0 <= int(delays.min()) <= int(delays.max()) <= max_delay)):
+        raise ValueError(f"rtc_delays: expected integers [{a.shape[0]}] in 0..{max_delay} (rtc_max_delay), got "
+                         f"{delays.dtype if isinstance(delays, Tensor) else type(delays).__name__} "
+                         f"{list(delays.shape) if isinstance(delays, Tensor) else ''}")
     if not max_delay:
         return fn, cond, None
-    keep = prefix_mask(sample_delays(a.shape[0], max_delay, generator, a.device, delay_dist), a.shape[1])  # [B, H]
+    d = sample_delays(a.shape[0], max_delay, generator, a.device, delay_dist)                # [B]
+    if delays is not None:
+        d = torch.where(delays.to(d.device) > 0, delays.to(d.device, d.dtype), d)
+    keep = prefix_mask(d, a.shape[1])                                                        # [B, H]
     live = ~keep
     if balance_rows:
         live = live.to(a.dtype) * row_weights(max_delay, a.shape[1], delay_dist).to(a.device, a.dtype)   # [B, H]
@@ -83,21 +94,21 @@ def _masked_mean(sq: Tensor, live: Optional[Tensor]) -> Tensor:
 def flow_matching_loss(velocity: Velocity, actions: Tensor, generator: Optional[torch.Generator] = None,
                        cond: Optional[Mapping[str, Any]] = None, rtc_max_delay: int = 0,
                        rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False,
-                       rtc_prefix_noise: float = 0.0) -> Tensor:
+                       rtc_prefix_noise: float = 0.0, rtc_delays: Optional[Tensor] = None) -> Tensor:
     """‖v_θ(z_t, t) − (a − e)‖² with t ~ U[0, 1], z_t = (1 − t)·e + t·a; mean over all entries.
 
     `rtc_max_delay` > 0 (training-time real-time chunking, `flows.rtc_trained`): each row's first
     d actions (d on 0..rtc_max_delay from `rtc_delay_dist`, `flows.rtc_trained.DELAY_DISTS`) are given clean at t = 1 (the velocity then takes times per
     token [B, H]); the loss is the mean over the other rows' entries, per chunk, then over chunks
     (`rtc_balance_rows`: row j's entries weighted 1/P(d ≤ j) and summed, over H×D; `rtc_prefix_noise`: the
-    prefix fed in carries Gaussian noise of that std, `clean_prefix`)."""
+    prefix fed in carries Gaussian noise of that std; `rtc_delays` [B]: row b's delay where > 0, `clean_prefix`)."""
     check_chunk(actions, "actions")
     a = actions.float() if actions.dtype != torch.float64 else actions
     t = torch.rand(a.shape[0], generator=generator, device=a.device, dtype=a.dtype)
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z = interpolate(e, a, t)
     fn, cond, live = clean_prefix(velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist, rtc_balance_rows,
-                                  rtc_prefix_noise)
+                                  rtc_prefix_noise, rtc_delays)
     v = checked_call(lambda x, tt: fn(x, tt, **(cond or {})), z, t, dtype=a.dtype, name="velocity")
     if live is None:
         return (v - (a - e)).square().mean()
@@ -220,7 +231,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
                   one_step_share: float = 0.0, dudt: str = "jvp", tangent: str = "sampled",
                   fd_one_call: Optional[bool] = None, target: str = "identity", rtc_max_delay: int = 0,
                   rtc_delay_dist: str = "uniform", rtc_balance_rows: bool = False,
-                  rtc_prefix_noise: float = 0.0) -> Tensor:
+                  rtc_prefix_noise: float = 0.0, rtc_delays: Optional[Tensor] = None) -> Tensor:
     """MeanFlow loss with the recipe of NOTES §2.
 
     Per row: Δ = u_θ(z_t, t, r) − sg(v − (t − r)·du/dt), error = mean(Δ²) over H×D,
@@ -262,7 +273,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     d actions (d on 0..rtc_max_delay from `rtc_delay_dist`) are given clean at t = r = 1 in every call (held fixed along
     the du/dt tangent and in the split's intermediate point), and each row's error is the mean over
     its other rows' entries (`rtc_balance_rows`: weighted 1/P(d ≤ j), summed over H×D; `rtc_prefix_noise`:
-    the prefix fed in carries Gaussian noise of that std, `clean_prefix`).
+    the prefix fed in carries Gaussian noise of that std; `rtc_delays` [B]: row b's delay where > 0, `clean_prefix`).
     """
     check_chunk(actions, "actions")
     if dudt not in MEANFLOW_DUDT:
@@ -284,7 +295,7 @@ def meanflow_loss(avg_velocity: AvgVelocity, actions: Tensor, generator: Optiona
     e = torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)
     z, v = interpolate(e, a, t), a - e                                   # [B, H, D] each
     avg_velocity, cond, live = clean_prefix(avg_velocity, a, rtc_max_delay, generator, cond, rtc_delay_dist,
-                                            rtc_balance_rows, rtc_prefix_noise)
+                                            rtc_balance_rows, rtc_prefix_noise, rtc_delays)
     if tangent == "boundary" and n > 0:
         c = slice_cond(cond, slice(0, n))
         with torch.no_grad():
