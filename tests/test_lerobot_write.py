@@ -294,6 +294,8 @@ def test_the_reader_checks_the_continuations_declared_shape(tmp_path):
 
 def test_prefix_lengths_round_trip_beside_the_continuations_and_bad_ones_are_one_line(tmp_path):
     """``action.prefix_length`` (relabelled plans: the committed rows each continuation starts with)."""
+    import dataclasses
+
     import torch
 
     from action_decoder.data import PREFIX_LENGTH, ChunkDataset
@@ -329,6 +331,9 @@ def test_prefix_lengths_round_trip_beside_the_continuations_and_bad_ones_are_one
         with pytest.raises(ValueError, match=words) as err:
             write_episodes(tmp_path / "bad", bad, ["a", "b"], 10)
         assert "\n" not in str(err.value) and not (tmp_path / "bad").exists()
+    with pytest.raises(ValueError, match=r"^EpisodeDataset.prefix_lengths: expected integers \[11\] in 0\.\.K-1 beside "
+                                         r"continuations \[frames, K, D\] \(none given\), got int64 \[11\] in 0\.\.2$"):
+        dataclasses.replace(ds, continuations=None, stats={})
     # A file whose column is edited outside the writer is refused by the reader, naming episode and frame.
     path = sorted((root / "data").rglob("*.parquet"))[-1]
     table = pq.read_table(path)

@@ -98,7 +98,8 @@ class EpisodeDataset:
         if k is None or given.shape != (len(self.actions),) or not np.issubdtype(given.dtype, np.integer) or \
                 (len(given) and not 0 <= given.min() <= given.max() < k):
             raise ValueError(f"EpisodeDataset.prefix_lengths: expected integers [{len(self.actions)}] in 0..K-1 beside "
-                             f"continuations [frames, K, D] (K = {k}), got {given.dtype} {list(given.shape)}"
+                             f"continuations [frames, K, D] ({'none given' if k is None else f'K = {k}'}), got {given.dtype} "
+                             f"{list(given.shape)}"
                              f"{f' in {given.min()}..{given.max()}' if given.size and np.issubdtype(given.dtype, np.number) else ''}")
         self.prefix_lengths = given.astype(np.int64)
 
