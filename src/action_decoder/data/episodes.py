@@ -97,10 +97,10 @@ class EpisodeDataset:
         k = None if self.continuations is None else self.continuations.shape[1]
         if k is None or given.shape != (len(self.actions),) or not np.issubdtype(given.dtype, np.integer) or \
                 (len(given) and not 0 <= given.min() <= given.max() < k):
+            span = f" in {given.min()}..{given.max()}" if given.size and given.dtype.kind in "iuf" else ""
             raise ValueError(f"EpisodeDataset.prefix_lengths: expected integers [{len(self.actions)}] in 0..K-1 beside "
-                             f"continuations [frames, K, D] ({'none given' if k is None else f'K = {k}'}), got {given.dtype} "
-                             f"{list(given.shape)}"
-                             f"{f' in {given.min()}..{given.max()}' if given.size and np.issubdtype(given.dtype, np.number) else ''}")
+                             f"continuations [frames, K, D] ({'none given' if k is None else f'K = {k}'}), got "
+                             f"{given.dtype} {list(given.shape)}{span}")
         self.prefix_lengths = given.astype(np.int64)
 
     @property

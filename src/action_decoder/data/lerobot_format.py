@@ -187,8 +187,8 @@ def _read_frames(path: Path, image_keys: tuple[str, ...] = ()) -> pa.Table:
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}, got {names}")
     return _read_parquet(path, "a parquet episode file",
-                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", "timestamp", CONTINUATION, PREFIX_LENGTH)
-                          + image_keys])
+                         [c for c in names if c in REQUIRED_COLUMNS + ("task_index", "timestamp", CONTINUATION,
+                                                                       PREFIX_LENGTH) + image_keys])
 
 
 def _prefix_lengths(table: pa.Table, path: Path, has_continuation: bool) -> np.ndarray | None:

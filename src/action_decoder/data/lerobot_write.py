@@ -11,8 +11,8 @@
 The schema follows what LeRobot 0.4.4 itself writes (column types, list field names, the
 ``huggingface`` schema metadata of data files, the pandas index column of ``tasks.parquet``).
 Columns beyond LeRobot's own (``next.reward``, ``next.success``, ``next.done``,
-``action.continuation``, ``action.prefix_length``) are declared in ``info.json`` like any other feature, so LeRobot loads
-them too. ``action.continuation`` (``[K, D]`` per frame) is stored and declared flat, shape
+``action.continuation``, ``action.prefix_length``) are declared in ``info.json`` like any other
+feature, so LeRobot loads them too. ``action.continuation`` (``[K, D]`` per frame) is stored and declared flat, shape
 ``[K·D]``: LeRobot casts a 2-d feature to an Arrow extension type that plain list columns do not
 match, and a flat vector loads everywhere; our reader reshapes it by the action width.
 
@@ -166,9 +166,10 @@ def _check_prefix_lengths(episodes: Sequence[dict], continuation: tuple | None) 
         given = np.asarray(ep[PREFIX_LENGTH])
         if not np.issubdtype(given.dtype, np.integer) or given.shape != (len(ep[ACTION]),) or \
                 not ((0 <= given) & (given < continuation[0])).all():
+            span = f" in {given.min()}..{given.max()}" if given.size and given.dtype.kind in "iuf" else ""
             raise ValueError(f"write_episodes: episode {e} {PREFIX_LENGTH} expected integers [{len(ep[ACTION])}] in "
-                             f"0..{continuation[0] - 1} (rows of {CONTINUATION}), got {given.dtype} {list(given.shape)}"
-                             f"{f' in {given.min()}..{given.max()}' if given.size and given.dtype.kind in 'iuf' else ''}")
+                             f"0..{continuation[0] - 1} (rows of {CONTINUATION}), got {given.dtype} "
+                             f"{list(given.shape)}{span}")
 
 
 def _check_images(episodes: Sequence[dict]) -> None:
