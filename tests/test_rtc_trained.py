@@ -194,9 +194,10 @@ def test_given_delays_fix_those_rows_prefixes_and_leave_the_others_drawn():
                                rtc_delays=torch.zeros(256, dtype=torch.int64))
     assert torch.equal(zeros, flow_matching_loss(oracle, a, torch.Generator().manual_seed(3), rtc_max_delay=4,
                                                  rtc_delay_dist="exp"))
-    for bad, words in ((torch.full((256,), 5), r"rtc_delays: expected integers \[256\] in 0\.\.4 \(rtc_max_delay\), "
-                                               r"got torch.int64 \[256\]$"),
-                       (torch.zeros(256), "got torch.float32 "), (torch.zeros(3, dtype=torch.int64), r"\[3\]$")):
+    for bad, words in ((torch.full((256,), 5), r"^rtc_delays: expected integers \[256\] in 0\.\.4 \(committed rows per "
+                                               r"chunk; rtc_max_delay=4\), got torch.int64 \[256\] in 5\.\.5$"),
+                       (torch.zeros(256), r"got torch.float32 \[256\]$"),
+                       (torch.zeros(3, dtype=torch.int64), r"got torch.int64 \[3\] in 0\.\.0$")):
         with pytest.raises(ValueError, match=words):
             flow_matching_loss(oracle, a, rtc_max_delay=4, rtc_delays=bad)
 

@@ -29,6 +29,7 @@ from .flows import (chain_log_prob, ddpm_loss, flow_matching_loss, make_sigma, m
                     sample_ode_prefix, sample_ode_rtc, sample_sde, sample_sde_rtc, velocity_from_meanflow,
                     velocity_from_sample)
 from .flows.paths import Generators, randn_rows
+from .flows.rtc_trained import check_delays
 from .flows.samplers import gaussian_target_std
 from .history import ObservationHistory
 from .noise_actor import NoiseActor
@@ -305,18 +306,11 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
 
     def _rtc_delays(self, batch: Mapping[str, Any]) -> Optional[Tensor]:
         """`batch["rtc_delays"]` [B] checked against `rtc_max_delay`, on the weights' device; None without it."""
-        given, m = batch.get("rtc_delays"), self.config.rtc_max_delay
+        given = batch.get("rtc_delays")
         if given is None:
             return None
-        b = batch["state"].shape[0]
-        if not isinstance(given, Tensor) or given.shape != (b,) or given.is_floating_point() or given.is_complex() \
-                or given.dtype == torch.bool or (given.numel() and not 0 <= int(given.min()) <= int(given.max()) <= m):
-            got = (f"{given.dtype} {list(given.shape)}" + (f" in {int(given.min())}..{int(given.max())}" if
-                   given.numel() and not given.is_floating_point() else "")) if isinstance(given, Tensor) \
-                else type(given).__name__
-            raise ValueError(f"batch['rtc_delays']: expected integers [{b}] in 0..{m} (committed rows per chunk; "
-                             f"rtc_max_delay={m}{', so training-time RTC is off' if not m else ''}), got {got}")
-        return given.to(next(self.parameters()).device, torch.int64)
+        delays = check_delays(given, batch["state"].shape[0], self.config.rtc_max_delay, "batch['rtc_delays']")
+        return delays.to(next(self.parameters()).device)
 
     # ------------------------------------------------------------------ sampling
     def resolve_sampler(self, sampler: Optional[str]) -> str:

@@ -15,8 +15,8 @@ from torch import Tensor
 
 from ..config import MEANFLOW_DUDT
 from .paths import AvgVelocity, Velocity, check_chunk, checked_call, interpolate
-from .rtc_trained import (CLEAN, DELAY_DISTS, KEEP, check_max_delay, prefix_mask, row_weights, sample_delays,
-                          with_clean_prefix)
+from .rtc_trained import (CLEAN, DELAY_DISTS, KEEP, check_delays, check_max_delay, prefix_mask, row_weights,
+                          sample_delays, with_clean_prefix)
 
 
 def _map_tensors(obj: Any, fn) -> Any:
@@ -60,17 +60,13 @@ def clean_prefix(fn, a: Tensor, max_delay: int, generator: Optional[torch.Genera
                          f"got {prefix_noise!r}")
     if delay_dist not in DELAY_DISTS:
         raise ValueError(f"rtc_delay_dist: expected one of {list(DELAY_DISTS)}, got {delay_dist!r}")
-    if delays is not None and (not isinstance(delays, Tensor) or delays.shape != (a.shape[0],)
-                               or delays.is_floating_point() or delays.dtype == torch.bool
-                               or (delays.numel() and not 0 <= int(delays.min()) <= int(delays.max()) <= max_delay)):
-        raise ValueError(f"rtc_delays: expected integers [{a.shape[0]}] in 0..{max_delay} (rtc_max_delay), got "
-                         f"{delays.dtype if isinstance(delays, Tensor) else type(delays).__name__} "
-                         f"{list(delays.shape) if isinstance(delays, Tensor) else ''}")
+    if delays is not None:
+        delays = check_delays(delays, a.shape[0], max_delay)
     if not max_delay:
         return fn, cond, None
     d = sample_delays(a.shape[0], max_delay, generator, a.device, delay_dist)                # [B]
     if delays is not None:
-        d = torch.where(delays.to(d.device) > 0, delays.to(d.device, d.dtype), d)
+        d = torch.where(delays.to(d.device) > 0, delays.to(d.device), d)
     keep = prefix_mask(d, a.shape[1])                                                        # [B, H]
     live = ~keep
     if balance_rows:

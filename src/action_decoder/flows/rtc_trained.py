@@ -72,6 +72,23 @@ def sample_delays(batch: int, max_delay: int, generator: Optional[torch.Generato
     return torch.searchsorted(cdf, u, right=True).clamp_max(max_delay)
 
 
+def check_delays(delays, batch: int, max_delay: int, name: str = "rtc_delays") -> Tensor:
+    """Given delays [B] (e.g. a relabelled dataset's committed rows per chunk) as int64, after one check:
+    a tensor of `batch` integers in 0..max_delay, else one line naming `name`."""
+    ok = isinstance(delays, Tensor) and delays.shape == (batch,) and not delays.is_floating_point() \
+        and not delays.is_complex() and delays.dtype != torch.bool
+    if ok and delays.numel() and not 0 <= int(delays.min()) <= int(delays.max()) <= max_delay:
+        ok = False
+    if not ok:
+        got = type(delays).__name__ if not isinstance(delays, Tensor) else f"{delays.dtype} {list(delays.shape)}" + (
+            f" in {int(delays.min())}..{int(delays.max())}" if delays.numel() and not delays.is_floating_point()
+            and not delays.is_complex() else "")
+        off = ", so training-time RTC is off" if not max_delay else ""
+        raise ValueError(f"{name}: expected integers [{batch}] in 0..{max_delay} (committed rows per chunk; "
+                         f"rtc_max_delay={max_delay}{off}), got {got}")
+    return delays.long()
+
+
 def prefix_mask(delays: Tensor, horizon: int) -> Tensor:
     """[B, H] bool, True on the first delays[b] rows of row b: the rows given clean."""
     return torch.arange(horizon, device=delays.device)[None, :] < delays[:, None]
