@@ -12,9 +12,10 @@ The schema follows what LeRobot 0.4.4 itself writes (column types, list field na
 ``huggingface`` schema metadata of data files, the pandas index column of ``tasks.parquet``).
 Columns beyond LeRobot's own (``next.reward``, ``next.success``, ``next.done``,
 ``action.continuation``, ``action.prefix_length``) are declared in ``info.json`` like any other
-feature, so LeRobot loads them too. ``action.continuation`` (``[K, D]`` per frame) is stored and declared flat, shape
-``[K·D]``: LeRobot casts a 2-d feature to an Arrow extension type that plain list columns do not
-match, and a flat vector loads everywhere; our reader reshapes it by the action width.
+feature, so LeRobot loads them too. ``action.continuation`` (``[K, D]`` per frame) is stored and
+declared flat, shape ``[K·D]``: LeRobot casts a 2-d feature to an Arrow extension type that plain
+list columns do not match, and a flat vector loads everywhere; our reader reshapes it by the
+action width.
 
 Statistics are exact over the frames they describe (``np.quantile``), with the raw std: LeRobot
 adds its own epsilon when normalising, and this library's reader floors the std when loading.

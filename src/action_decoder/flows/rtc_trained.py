@@ -75,14 +75,11 @@ def sample_delays(batch: int, max_delay: int, generator: Optional[torch.Generato
 def check_delays(delays, batch: int, max_delay: int, name: str = "rtc_delays") -> Tensor:
     """Given delays [B] (e.g. a relabelled dataset's committed rows per chunk) as int64, after one check:
     a tensor of `batch` integers in 0..max_delay, else one line naming `name`."""
-    ok = isinstance(delays, Tensor) and delays.shape == (batch,) and not delays.is_floating_point() \
-        and not delays.is_complex() and delays.dtype != torch.bool
-    if ok and delays.numel() and not 0 <= int(delays.min()) <= int(delays.max()) <= max_delay:
-        ok = False
-    if not ok:
-        got = type(delays).__name__ if not isinstance(delays, Tensor) else f"{delays.dtype} {list(delays.shape)}" + (
-            f" in {int(delays.min())}..{int(delays.max())}" if delays.numel() and not delays.is_floating_point()
-            and not delays.is_complex() else "")
+    integer = isinstance(delays, Tensor) and not (delays.is_floating_point() or delays.is_complex()
+                                                  or delays.dtype == torch.bool)
+    span = f" in {int(delays.min())}..{int(delays.max())}" if integer and delays.numel() else ""
+    if not integer or delays.shape != (batch,) or (span and not 0 <= int(delays.min()) <= int(delays.max()) <= max_delay):
+        got = f"{delays.dtype} {list(delays.shape)}{span}" if isinstance(delays, Tensor) else type(delays).__name__
         off = ", so training-time RTC is off" if not max_delay else ""
         raise ValueError(f"{name}: expected integers [{batch}] in 0..{max_delay} (committed rows per chunk; "
                          f"rtc_max_delay={max_delay}{off}), got {got}")
