@@ -305,12 +305,12 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
         return PolicyOutput(loss=loss, metrics={"loss": loss.detach()})
 
     def _rtc_delays(self, batch: Mapping[str, Any]) -> Optional[Tensor]:
-        """`batch["rtc_delays"]` [B] checked against `rtc_max_delay`, on the weights' device; None without it."""
+        """`batch["rtc_delays"]` [B] checked against `rtc_max_delay` (the loss moves it to the chunk's device);
+        None without it."""
         given = batch.get("rtc_delays")
         if given is None:
             return None
-        delays = check_delays(given, batch["state"].shape[0], self.config.rtc_max_delay, "batch['rtc_delays']")
-        return delays.to(next(self.parameters()).device)
+        return check_delays(given, batch["state"].shape[0], self.config.rtc_max_delay, "batch['rtc_delays']")
 
     # ------------------------------------------------------------------ sampling
     def resolve_sampler(self, sampler: Optional[str]) -> str:
