@@ -255,7 +255,9 @@ def write_page(rows: list[dict], path: Path, args, command: str) -> None:
 def main(argv=None) -> None:
     from action_decoder.config import RTC_DELAY_DISTS, DecoderConfig
     from action_decoder.train import TrainConfig
+    from benchmarks.multimodal import Budget
 
+    mm_budget = Budget()
     p = argparse.ArgumentParser(prog="python -m benchmarks rtc", description=__doc__.split("\n\n")[0])
     p.add_argument("--part", choices=["all", "multimodal", "metaworld", "horizons", "latency", "cost", "prefix"],
                    default="all",
@@ -278,7 +280,11 @@ def main(argv=None) -> None:
                    help="horizons part: the RTC arms, rtc_horizon values, each evaluated beside naive switching")
     p.add_argument("--multimodal", nargs="+", default=["synthetic", "obstacle"], choices=["synthetic", "obstacle"],
                    help="multimodal part: the tasks")
-    p.add_argument("--mm-train-steps", type=int, default=1500, help="multimodal part: training steps per policy")
+    p.add_argument("--mm-train-steps", type=int, default=mm_budget.steps, help="multimodal part: training steps per policy")
+    p.add_argument("--mm-hidden-size", type=int, default=mm_budget.hidden,
+                   help="multimodal part: hidden size of every policy trained")
+    p.add_argument("--mm-num-layers", type=int, default=mm_budget.layers,
+                   help="multimodal part: transformer layers of every policy trained")
     p.add_argument("--mm-states", type=int, default=256, help="synthetic: states per cell")
     p.add_argument("--mm-samples", type=int, default=4, help="synthetic: re-plans per state")
     p.add_argument("--mm-episodes", type=int, default=50, help="obstacle routes: episodes per cell")

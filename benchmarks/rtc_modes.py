@@ -210,7 +210,7 @@ def rtc_target(decoder: str, max_delay: int, meanflow_target: str | None = None)
 def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, draw, state_dim: int,
                      action_dim: int, arms=ARMS, meanflow_target: str | None = None) -> dict:
     """{"plain": policy, "rtc": policy, "train_cpu_s": {...}} (the weights `arms` need): trained once
-    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>][bal][split]]-seed<s>; the
+    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>][bal][split]][budget_suffix]-seed<s>; the
     RTC-trained MeanFlow weights with `meanflow_target` (None: the library's default, `rtc_target`)."""
     from action_decoder import ActionDecoderPolicy
     from benchmarks.multimodal import Budget, train
@@ -222,7 +222,7 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
             continue
         target = rtc_target(decoder, max_delay, meanflow_target)
         path = runs / (f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows, target)}"
-                       f"-seed{seed}")
+                       f"{budget_suffix(budget)}-seed{seed}")
         if not (path / "model.safetensors").is_file():
             recipe = {**budget.recipe, **({"target": target} if decoder == "mean_flow" else {})}
             b = Budget(**{**budget.__dict__, "rtc_max_delay": max_delay, "recipe": recipe})
@@ -358,7 +358,8 @@ def run_multimodal(args, command: str) -> None:
     from action_decoder.envs.obstacle_routes import ACTION_DIM, OBS_DIM, expert_dataset
     from benchmarks.multimodal import Budget, dataset_batch, synthetic_batch
 
-    budget = Budget(steps=args.mm_train_steps, rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows)
+    budget = Budget(steps=args.mm_train_steps, hidden=args.mm_hidden_size, layers=args.mm_num_layers,
+                    rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows)
     runs = Path(args.runs) / "multimodal"
     decoders = sorted({d for d, _ in args.settings})
     out = Path(args.multimodal_json)
@@ -381,7 +382,8 @@ def run_multimodal(args, command: str) -> None:
                      rtc_balance_rows=budget.rtc_balance_rows if r["arm"] == "trained" else None,
                      rtc_meanflow_target=p["rtc"].config.meanflow_target
                      if r["arm"] == "trained" and r["decoder"] == "mean_flow" else None,
-                     train_steps=budget.steps, command=command, date=time.strftime("%Y-%m-%d"),
+                     train_steps=budget.steps, hidden_size=budget.hidden, num_layers=budget.layers,
+                     command=command, date=time.strftime("%Y-%m-%d"),
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
         key = lambda r: (r["task"], r["decoder"], r["steps"], r["delay"], arm_label(r), r["seed"])  # noqa: E731
@@ -460,6 +462,16 @@ def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False, mean
     "bal" with balanced row weights and "split" with MeanFlow's interval-consistency target."""
     return (f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}"
             f"{'split' if meanflow_target == 'split' else ''}") if max_delay else ""
+
+
+def budget_suffix(budget) -> str:
+    """The run directory's suffix of a multimodal training budget other than `benchmarks.multimodal.Budget`'s:
+    -<N>steps, -h<hidden>x<layers>, so that weights of another budget are never reused."""
+    from benchmarks.multimodal import Budget
+
+    base = Budget()
+    return (f"-{budget.steps}steps" if budget.steps != base.steps else "") + \
+        (f"-h{budget.hidden}x{budget.layers}" if (budget.hidden, budget.layers) != (base.hidden, base.layers) else "")
 
 
 def run_suffix(train_steps: int, train_seed: int) -> str:

@@ -689,6 +689,16 @@ def test_benchmark_names_the_rtc_weights_by_their_delay_distribution():
     assert _dists(rows) == "delays drawn exp and uniform on 0..4" and _dists(rows[:1]) == "delays drawn exp on 0..4"
 
 
+def test_benchmark_names_the_multimodal_weights_by_their_budget():
+    """Weights of another training budget or network size live in their own directory, never reused."""
+    from benchmarks.multimodal import Budget
+    from benchmarks.rtc_modes import budget_suffix
+
+    assert budget_suffix(Budget()) == "" and budget_suffix(Budget(steps=5000)) == "-5000steps"
+    assert budget_suffix(Budget(hidden=96, layers=3)) == "-h96x3"
+    assert budget_suffix(Budget(steps=5000, layers=3)) == "-5000steps-h64x3"
+
+
 def _mw_row(task, arm, delay, successes, train_steps=None, train_seed=None, episodes=50):
     r = {"task": task, "decoder": "mean_flow", "steps": 1, "delay": delay, "arm": arm, "episodes": episodes,
          "seed": 0, "successes": successes, "success_rate": successes / episodes, "boundary_jerk": 0.1,
