@@ -86,7 +86,8 @@ def test_chunk_dataset_stacks_observations_with_episode_start_padding():
 # ---------------------------------------------------------------------- the network
 def test_n1_reads_a_format7_config_and_samples_as_before():
     """The config.json and outputs of `tests/data/format7_policy/make.py`, written before n_obs_steps:
-    the same weights (built under one seed) give the same chunk and loss, to the bit."""
+    the same weights (built under one seed) give the same chunk and loss, to float32 rounding (the file was written
+    on another CPU, whose kernels may round the last bit differently; a changed model moves them by far more)."""
     cfg = DecoderConfig.from_json(FORMAT7 / "config.json")
     assert json.loads((FORMAT7 / "config.json").read_text())["format_version"] == 7 and cfg.n_obs_steps == 1
     ref = load_file(str(FORMAT7 / "reference.safetensors"))
@@ -101,7 +102,8 @@ def test_n1_reads_a_format7_config_and_samples_as_before():
     with torch.no_grad():
         chunk = policy.eval().sample(batch, noise=ref["noise"]).actions
         loss = policy.train().compute_loss({**batch, "actions": ref["actions"]}, torch.Generator().manual_seed(1)).loss
-    assert torch.equal(chunk, ref["chunk"]) and torch.equal(loss.reshape(1), ref["loss"])
+    torch.testing.assert_close(chunk, ref["chunk"], rtol=0, atol=1e-5)
+    torch.testing.assert_close(loss.reshape(1), ref["loss"], rtol=0, atol=1e-5)
 
 
 def test_n2_reads_every_step_and_saves_its_config(tmp_path):
