@@ -699,6 +699,27 @@ def test_benchmark_names_the_multimodal_weights_by_their_budget():
     assert budget_suffix(Budget(steps=5000, layers=3)) == "-5000steps-h64x3"
 
 
+def test_benchmark_trains_again_for_another_budget_and_reuses_its_own(tmp_path, monkeypatch):
+    """`trained_policies` trains once per (budget, network): the same budget loads, another one trains."""
+    import benchmarks.multimodal as mm
+    from benchmarks.rtc_modes import trained_policies
+
+    calls = []
+
+    def fake_train(decoder, draw, state_dim, action_dim, b, seed):
+        calls.append((b.steps, b.hidden, b.layers))
+        cfg = DecoderConfig(decoder_type=decoder, state_dim=state_dim, action_dim=action_dim, action_chunk_size=16,
+                            hidden_size=b.hidden, num_hidden_layers=b.layers, num_attention_heads=4,
+                            num_key_value_heads=2)
+        return ActionDecoderPolicy(cfg).eval(), 0.0
+
+    monkeypatch.setattr(mm, "train", fake_train)
+    for budget in (mm.Budget(), mm.Budget(), mm.Budget(steps=5000), mm.Budget(hidden=32, layers=1)):
+        pols = trained_policies("synthetic", "flow_matching", budget, 0, tmp_path, None, 4, 4, ["naive"])
+        assert (pols["plain"].config.hidden_size, pols["plain"].config.num_hidden_layers) == (budget.hidden, budget.layers)
+    assert calls == [(1500, 64, 2), (5000, 64, 2), (1500, 32, 1)]
+
+
 def _mw_row(task, arm, delay, successes, train_steps=None, train_seed=None, episodes=50):
     r = {"task": task, "decoder": "mean_flow", "steps": 1, "delay": delay, "arm": arm, "episodes": episodes,
          "seed": 0, "successes": successes, "success_rate": successes / episodes, "boundary_jerk": 0.1,
