@@ -43,9 +43,10 @@ COLUMNS = [("DDPM K=10", "DDPM", "ode", 10), ("FM K=1", "flow_matching", "ode", 
            ("MF K=2", "mean_flow", "ode", 2), ("FM-SDE K=10", "flow_matching", "sde", 10)]
 RECIPE_FIELDS = {"ratio": "meanflow_ratio_r_neq_t", "time_dist": "meanflow_time_dist",
                  "adaptive_p": "meanflow_adaptive_p", "adaptive_c": "meanflow_adaptive_c",
-                 "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt", "target": "meanflow_target"}
+                 "flow_prediction": "flow_prediction", "dudt": "meanflow_dudt", "target": "meanflow_target",
+                 "one_step_share": "meanflow_one_step_share"}
 STRING_KEYS = ("time_dist", "flow_prediction", "tangent", "dudt", "target")
-LOSS_OPTIONS = ("one_step_share", "tangent")   # `meanflow_loss` keywords with no config field (measured, not adopted)
+LOSS_OPTIONS = ("tangent",)   # `meanflow_loss` keywords with no config field (measured, not adopted)
 TRAIN_OPTIONS = ("distill",)   # recipe keys of this benchmark's training loop (measured, not in the library)
 TEACHER_STEPS = 10             # Euler steps of the flow-matching teacher's ODE for `distill`
 RECIPE_KEYS = sorted((*RECIPE_FIELDS, *LOSS_OPTIONS, *TRAIN_OPTIONS))
@@ -128,6 +129,20 @@ class Budget:
     rtc_max_delay: int = 0     # training-time real-time chunking (DecoderConfig.rtc_max_delay; 0: off)
     rtc_delay_dist: str = DecoderConfig.rtc_delay_dist   # how its delays are drawn (DecoderConfig.rtc_delay_dist)
     rtc_balance_rows: bool = False   # its loss rows weighted 1/P(d <= j) (DecoderConfig.rtc_balance_rows)
+
+
+def parse_recipe(items: list[str], flag: str = "--recipe") -> dict:
+    """{key: value} from KEY=VALUE strings with keys in RECIPE_KEYS (numbers as floats, STRING_KEYS as given)."""
+    recipe = {}
+    for kv in items:
+        key, sep, value = kv.partition("=")
+        if not sep or key not in RECIPE_KEYS:
+            raise ValueError(f"{flag}: expected KEY=VALUE with KEY in {RECIPE_KEYS}, got {kv!r}")
+        try:
+            recipe[key] = value if key in STRING_KEYS else float(value)
+        except ValueError:
+            raise ValueError(f"{flag}: expected a number for {key}, got {value!r}") from None
+    return recipe
 
 
 def use_loss_options(options: dict) -> None:
@@ -338,12 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.log_every < 0:
         raise ValueError(f"--log-every: expected a number of steps ≥ 0, got {a.log_every}")
     b.log_every = a.log_every
-    for kv in a.recipe:
-        key, sep, value = kv.partition("=")
-        if not sep or key not in RECIPE_KEYS:
-            raise ValueError(f"--recipe: expected KEY=VALUE with KEY in {RECIPE_KEYS}, "
-                             f"got {kv!r}")
-        b.recipe[key] = value if key in STRING_KEYS else float(value)
+    b.recipe.update(parse_recipe(a.recipe))
     if a.dudt is not None:
         b.recipe["dudt"] = a.dudt
     tasks = [a.only] if a.only else ["synthetic", "obstacle"]

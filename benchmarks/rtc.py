@@ -285,6 +285,9 @@ def main(argv=None) -> None:
                    help="multimodal part: hidden size of every policy trained")
     p.add_argument("--mm-num-layers", type=int, default=mm_budget.layers,
                    help="multimodal part: transformer layers of every policy trained")
+    p.add_argument("--mm-recipe", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="multimodal part: MeanFlow recipe overrides of every policy trained "
+                        "(the keys of `python -m benchmarks multimodal --recipe`)")
     p.add_argument("--mm-states", type=int, default=256, help="synthetic: states per cell")
     p.add_argument("--mm-samples", type=int, default=4, help="synthetic: re-plans per state")
     p.add_argument("--mm-episodes", type=int, default=50, help="obstacle routes: episodes per cell")

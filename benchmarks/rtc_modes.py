@@ -221,7 +221,9 @@ def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, dra
         if key not in need:
             continue
         target = rtc_target(decoder, max_delay, meanflow_target)
-        path = runs / (f"{task}-{decoder}{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows, target)}"
+        share = rtc_one_step_share(decoder, max_delay, target)
+        path = runs / (f"{task}-{decoder}"
+                       f"{rtc_suffix(max_delay, budget.rtc_delay_dist, budget.rtc_balance_rows, target, share)}"
                        f"{budget_suffix(budget)}-seed{seed}")
         if not (path / "model.safetensors").is_file():
             recipe = {**budget.recipe, **({"target": target} if decoder == "mean_flow" else {})}
@@ -356,10 +358,11 @@ def run_obstacle(pols_by_decoder: dict, episodes: int, seed: int, arms=ARMS) -> 
 def run_multimodal(args, command: str) -> None:
     """Train (once) and measure (a) and (b) for --settings' decoders; rows to --multimodal-json."""
     from action_decoder.envs.obstacle_routes import ACTION_DIM, OBS_DIM, expert_dataset
-    from benchmarks.multimodal import Budget, dataset_batch, synthetic_batch
+    from benchmarks.multimodal import Budget, dataset_batch, parse_recipe, synthetic_batch
 
     budget = Budget(steps=args.mm_train_steps, hidden=args.mm_hidden_size, layers=args.mm_num_layers,
-                    rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows)
+                    rtc_delay_dist=args.rtc_delay_dist, rtc_balance_rows=args.rtc_balance_rows,
+                    recipe=parse_recipe(args.mm_recipe, "--mm-recipe"))
     runs = Path(args.runs) / "multimodal"
     decoders = sorted({d for d, _ in args.settings})
     out = Path(args.multimodal_json)
@@ -382,7 +385,10 @@ def run_multimodal(args, command: str) -> None:
                      rtc_balance_rows=budget.rtc_balance_rows if r["arm"] == "trained" else None,
                      rtc_meanflow_target=p["rtc"].config.meanflow_target
                      if r["arm"] == "trained" and r["decoder"] == "mean_flow" else None,
+                     rtc_meanflow_one_step_share=p["rtc"].config.meanflow_one_step_share
+                     if r["arm"] == "trained" and r["decoder"] == "mean_flow" else None,
                      train_steps=budget.steps, hidden_size=budget.hidden, num_layers=budget.layers,
+                     **({"recipe": budget.recipe} if budget.recipe else {}),
                      command=command, date=time.strftime("%Y-%m-%d"),
                      machine=f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                              f"{torch.get_num_threads()} torch thread")
@@ -457,21 +463,34 @@ def multimodal_section(rows: list[dict]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------- Meta-World
-def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False, meanflow_target: str = "identity") -> str:
+def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False, meanflow_target: str = "identity",
+               one_step_share: float = 0.0) -> str:
     """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform,
-    "bal" with balanced row weights and "split" with MeanFlow's interval-consistency target."""
+    "bal" with balanced row weights, "split" with MeanFlow's interval-consistency target and os<share> with
+    MeanFlow rows at (t, r) = (0, 1) (`DecoderConfig.meanflow_one_step_share`)."""
     return (f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}"
-            f"{'split' if meanflow_target == 'split' else ''}") if max_delay else ""
+            f"{'split' if meanflow_target == 'split' else ''}"
+            f"{f'os{one_step_share:g}' if one_step_share else ''}") if max_delay else ""
+
+
+def rtc_one_step_share(decoder: str, max_delay: int, meanflow_target: str) -> float:
+    """The share of MeanFlow rows at (t, r) = (0, 1) that `DecoderConfig` resolves for these weights by default."""
+    from action_decoder import DecoderConfig
+
+    return DecoderConfig(decoder_type=decoder, rtc_max_delay=max_delay, meanflow_target=meanflow_target) \
+        .meanflow_one_step_share
 
 
 def budget_suffix(budget) -> str:
     """The run directory's suffix of a multimodal training budget other than `benchmarks.multimodal.Budget`'s:
-    -<N>steps, -h<hidden>x<layers>, so that weights of another budget are never reused."""
+    -<N>steps, -h<hidden>x<layers>, and -<key><value> per recipe override (sorted by key), so that weights of
+    another budget or recipe are never reused."""
     from benchmarks.multimodal import Budget
 
     base = Budget()
     return (f"-{budget.steps}steps" if budget.steps != base.steps else "") + \
-        (f"-h{budget.hidden}x{budget.layers}" if (budget.hidden, budget.layers) != (base.hidden, base.layers) else "")
+        (f"-h{budget.hidden}x{budget.layers}" if (budget.hidden, budget.layers) != (base.hidden, base.layers) else "") + \
+        "".join(f"-{k}{v:g}" if isinstance(v, float) else f"-{k}{v}" for k, v in sorted(budget.recipe.items()))
 
 
 def run_suffix(train_steps: int, train_seed: int) -> str:
@@ -484,15 +503,16 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
                     balance_rows: bool = False, train_steps: int | None = None, train_seed: int | None = None,
                     meanflow_target: str | None = None) -> Path:
     """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows, --steps,
-    --seed, and for RTC-trained MeanFlow --meanflow-target, None: train's default), once, under
-    runs/<task>-<decoder>[-rtc<N>[<dist>][bal][split]][-<steps>steps][-seed<s>]."""
+    --seed, and for RTC-trained MeanFlow --meanflow-target, None: train's default, and the one-step share the
+    library resolves for it), once, under runs/<task>-<decoder>[-rtc<N>[<dist>][bal][split][os<share>]][-<steps>steps][-seed<s>]."""
     import subprocess
     import sys
 
     train_steps = TrainConfig.steps if train_steps is None else train_steps
     train_seed = TrainConfig.seed if train_seed is None else train_seed
     target = rtc_target(decoder, max_delay, meanflow_target)
-    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows, target)}"
+    share = rtc_one_step_share(decoder, max_delay, target)
+    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows, target, share)}"
                   f"{run_suffix(train_steps, train_seed)}")
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
@@ -500,7 +520,8 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
                "--steps", str(train_steps), "--seed", str(train_seed)]
         cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
         cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
-        cmd += ["--meanflow-target", target] if decoder == "mean_flow" and max_delay else []
+        cmd += ["--meanflow-target", target, "--meanflow-one-step-share", f"{share:g}"] \
+            if decoder == "mean_flow" and max_delay else []
         out.mkdir(parents=True, exist_ok=True)
         with open(out.with_suffix(".log"), "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
@@ -545,6 +566,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                              "rtc_balance_rows": pols["rtc"].config.rtc_balance_rows if arm == "trained" else None,
                              "rtc_meanflow_target": pols["rtc"].config.meanflow_target
                              if arm == "trained" and decoder == "mean_flow" else None,
+                             "rtc_meanflow_one_step_share": pols["rtc"].config.meanflow_one_step_share
+                             if arm == "trained" and decoder == "mean_flow" else None,
                              "date": time.strftime("%Y-%m-%d"),
                              "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                         f"{torch.get_num_threads()} torch thread"})
@@ -563,8 +586,11 @@ def _seed(r: dict) -> int:
 
 
 def arm_label(r: dict) -> str:
-    """The row's arm, naming the MeanFlow target of RTC-trained weights when it is not the identity."""
-    return r["arm"] + (", split target" if r.get("rtc_meanflow_target") == "split" else "")
+    """The row's arm, naming the MeanFlow target of RTC-trained weights when it is not the identity and their
+    share of rows at (t, r) = (0, 1) when it is not 0."""
+    share = r.get("rtc_meanflow_one_step_share")
+    return r["arm"] + (", split target" if r.get("rtc_meanflow_target") == "split" else "") + \
+        (f", one-step rows {share:g}" if share else "")
 
 
 def arm_labels(rows: list[dict]) -> list[str]:

@@ -2,6 +2,7 @@
 the policy's modes and the CLI (train --rtc-max-delay, eval --rtc-mode)."""
 
 import json
+import re
 
 import pytest
 import torch
@@ -557,7 +558,7 @@ def test_config_saves_rtc_max_delay_and_older_formats_read_zero(tmp_path):
     cfg = DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4)
     cfg.to_json(tmp_path / "c.json")
     saved = json.loads((tmp_path / "c.json").read_text())
-    assert CONFIG_FORMAT_VERSION == 9 and saved["rtc_max_delay"] == 4
+    assert CONFIG_FORMAT_VERSION == 10 and saved["rtc_max_delay"] == 4
     assert DecoderConfig.from_json(tmp_path / "c.json").rtc_max_delay == 4
     old = {k: v for k, v in saved.items() if k != "rtc_max_delay"}
     (tmp_path / "old.json").write_text(json.dumps({**old, "format_version": 6}))
@@ -697,6 +698,32 @@ def test_benchmark_names_the_multimodal_weights_by_their_budget():
     assert budget_suffix(Budget()) == "" and budget_suffix(Budget(steps=5000)) == "-5000steps"
     assert budget_suffix(Budget(hidden=96, layers=3)) == "-h96x3"
     assert budget_suffix(Budget(steps=5000, layers=3)) == "-5000steps-h64x3"
+    assert budget_suffix(Budget(recipe={"target": "split", "one_step_share": 0.25})) == \
+        "-one_step_share0.25-targetsplit"
+
+
+def test_benchmark_mm_recipe_reaches_the_trained_weights_and_refuses_bad_keys_in_one_line(tmp_path, monkeypatch):
+    """`--mm-recipe KEY=VALUE` is the multimodal benchmark's `--recipe`: parsed alike, handed to training."""
+    import benchmarks.multimodal as mm
+    from benchmarks.rtc import main
+
+    assert mm.parse_recipe(["one_step_share=0.25", "target=split"]) == {"one_step_share": 0.25, "target": "split"}
+    for bad, match in ((["ratio"], "--mm-recipe: expected KEY=VALUE"), (["nope=1"], "--mm-recipe: expected KEY=VALUE"),
+                       (["one_step_share=a"], "--mm-recipe: expected a number for one_step_share, got 'a'")):
+        with pytest.raises(ValueError, match=match):
+            main(["--part", "multimodal", "--multimodal", "synthetic", "--mm-recipe", *bad, "--runs", str(tmp_path)])
+    seen = []
+
+    def fake_train(decoder, draw, state_dim, action_dim, b, seed):
+        seen.append(dict(b.recipe))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(mm, "train", fake_train)
+    with pytest.raises(SystemExit):
+        main(["--part", "multimodal", "--multimodal", "synthetic", "--settings", "mean_flow:1", "--arms", "trained",
+              "--mm-recipe", "one_step_share=0.25", "--rtc-meanflow-target", "split", "--runs", str(tmp_path),
+              "--multimodal-json", str(tmp_path / "mm.json"), "--table", str(tmp_path / "rtc.md")])
+    assert seen == [{"one_step_share": 0.25, "target": "split"}]
 
 
 def test_benchmark_trains_again_for_another_budget_and_reuses_its_own(tmp_path, monkeypatch):
@@ -757,11 +784,11 @@ def test_meta_world_training_runs_the_cli_with_the_budget_and_seed_under_their_o
     calls = []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
     out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 2)
-    assert out == tmp_path / "push-mean_flow-rtc4expsplit-5000steps-seed2" / "final"     # the default target
+    assert out == tmp_path / "push-mean_flow-rtc4expsplitos0.25-5000steps-seed2" / "final"     # the default target
     cmd = calls[0]
     assert cmd[cmd.index("--steps") + 1] == "5000" and cmd[cmd.index("--seed") + 1] == "2"
     assert cmd[cmd.index("--rtc-max-delay") + 1] == "4" and cmd[cmd.index("--rtc-delay-dist") + 1] == "exp"
-    assert cmd[cmd.index("--meanflow-target") + 1] == "split"
+    assert cmd[cmd.index("--meanflow-target") + 1] == "split" and cmd[cmd.index("--meanflow-one-step-share") + 1] == "0.25"
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0) == tmp_path / "push-mean_flow" / "final"
 
 
@@ -773,7 +800,7 @@ def test_meta_world_split_target_weights_get_their_own_directory_command_and_row
     calls = []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
     out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 0, "split")
-    assert out == tmp_path / "push-mean_flow-rtc4expsplit-5000steps" / "final"
+    assert out == tmp_path / "push-mean_flow-rtc4expsplitos0.25-5000steps" / "final"
     assert calls[0][calls[0].index("--meanflow-target") + 1] == "split"
     # the plain weights and flow matching take no MeanFlow target
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0, "exp", False, 5000, 0, "split").parent.name \
@@ -781,6 +808,7 @@ def test_meta_world_split_target_weights_get_their_own_directory_command_and_row
     assert train_metaworld("metaworld/push", "flow_matching", tmp_path, 4, "exp", False, 5000, 0, "split").parent.name \
         == "push-flow_matching-rtc4exp-5000steps" and "--meanflow-target" not in calls[-1]
     assert rtc_suffix(4, "exp", False, "identity") == "-rtc4exp" and rtc_suffix(0, "exp", False, "split") == ""
+    assert rtc_suffix(4, "exp", False, "split", 0.25) == "-rtc4expsplitos0.25" and rtc_suffix(0, "exp", False, "split", 0.25) == ""
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 0, "identity").parent.name \
         == "push-mean_flow-rtc4exp-5000steps" and calls[-1][calls[-1].index("--meanflow-target") + 1] == "identity"
     identity = _mw_row("push-v3", "trained", 2, 40, 5000, 0)
@@ -788,6 +816,8 @@ def test_meta_world_split_target_weights_get_their_own_directory_command_and_row
     naive = _mw_row("push-v3", "naive", 2, 30, 5000, 0)
     assert row_key(identity) != row_key(split) and arm_label(split) == "trained, split target"
     assert arm_labels([split, identity, naive]) == ["naive", "trained", "trained, split target"]
+    one_step = {**split, "rtc_meanflow_one_step_share": 0.25}
+    assert arm_label(one_step) == "trained, split target, one-step rows 0.25" and row_key(one_step) != row_key(split)
     page = "\n".join(metaworld_section([identity, split, naive], ["metaworld/push"]))
     assert "| MF K=1 | 2 | trained | 1 | 0 | 80.0 |" in page and "| MF K=1 | 2 | trained, split target | 1 | 0 | 20.0 |" in page
     assert "| MF K=1 | trained, split target | 20 |" in page and "interval-consistency" in page
@@ -883,3 +913,36 @@ def test_benchmark_prefix_part_writes_its_rows_and_its_page_section(tmp_path, mo
     assert asked[0][:4] == ("metaworld/push", "mean_flow", tmp_path, 4) and asked[0][6] == 5000
     assert "## Trained RTC on its own training chunks" in page.read_text()
     assert "| push-v3 | MF K=1 | exp delays, split target | 5000 | 0 | 5 |" in page.read_text()
+
+
+def test_meanflow_one_step_share_resolves_by_decoder_rtc_and_target_and_reaches_the_loss(tmp_path, monkeypatch):
+    """None resolves to 0.25 only for MeanFlow trained with RTC and the split target; it is saved resolved,
+    format-9 files read 0, bad values are one line, and the policy's loss draws that share of rows at (0, 1)."""
+    import action_decoder.policy as policy_mod
+
+    resolved = lambda **kw: DecoderConfig(**kw).meanflow_one_step_share                  # noqa: E731
+    assert resolved(decoder_type="mean_flow", rtc_max_delay=4) == 0.25                    # split by default there
+    assert resolved(decoder_type="mean_flow", rtc_max_delay=4, meanflow_target="identity") == 0.0
+    assert resolved(decoder_type="mean_flow") == 0.0 and resolved(decoder_type="flow_matching", rtc_max_delay=4) == 0.0
+    assert resolved(decoder_type="mean_flow", meanflow_one_step_share=0.5) == 0.5
+    cfg = DecoderConfig(decoder_type="mean_flow", rtc_max_delay=4)
+    cfg.to_json(tmp_path / "c.json")
+    saved = json.loads((tmp_path / "c.json").read_text())
+    assert saved["meanflow_one_step_share"] == 0.25 and saved["format_version"] == CONFIG_FORMAT_VERSION
+    old = {k: v for k, v in saved.items() if k != "meanflow_one_step_share"}
+    (tmp_path / "old9.json").write_text(json.dumps({**old, "format_version": 9}))
+    assert DecoderConfig.from_json(tmp_path / "old9.json").meanflow_one_step_share == 0.0
+    for bad in (1.5, -0.1, True, "a"):
+        with pytest.raises(ValueError, match=r"^meanflow_one_step_share: expected a fraction of the r != t rows in "
+                                             rf"\[0, 1\] \(None: the resolved default\), got {re.escape(repr(bad))}$"):
+            DecoderConfig(decoder_type="mean_flow", meanflow_one_step_share=bad)
+    seen = []
+    real = policy_mod.meanflow_loss
+    monkeypatch.setattr(policy_mod, "meanflow_loss", lambda *a, **kw: seen.append(kw["one_step_share"]) or real(*a, **kw))
+    torch.manual_seed(0)
+    policy = ActionDecoderPolicy(DecoderConfig(decoder_type="mean_flow", state_dim=3, action_dim=2, action_chunk_size=8,
+                                               hidden_size=32, num_hidden_layers=1, num_attention_heads=2,
+                                               num_key_value_heads=1, rtc_max_delay=2))
+    loss = policy.compute_loss({"state": torch.randn(4, 3), "actions": torch.randn(4, 8, 2)},
+                               torch.Generator().manual_seed(0)).loss
+    assert seen == [0.25] and torch.isfinite(loss)

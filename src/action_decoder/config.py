@@ -40,7 +40,7 @@ def is_camera_key(key) -> bool:
 # Version of the config.json layout that `to_json` writes and `from_json` reads. Versions 2 and
 # up carry every field of their version: a checkpoint is read back as it was trained, never
 # completed with today's defaults (files without a version are version 1, no longer read).
-CONFIG_FORMAT_VERSION = 9
+CONFIG_FORMAT_VERSION = 10
 # The fields each format version added, with the values that keep an older checkpoint's behaviour:
 # a config.json of an older (still readable) version gets them filled in when it is read.
 ADDED_FIELDS: dict[int, dict[str, Any]] = {
@@ -53,6 +53,7 @@ ADDED_FIELDS: dict[int, dict[str, Any]] = {
     7: {"noise_actor_hidden": 0, "noise_actor_bound": 2.5, "clip_actions": False, "rtc_max_delay": 0},
     8: {"n_obs_steps": 1, "rtc_delay_dist": "uniform", "rtc_balance_rows": False},
     9: {"rtc_prefix_noise": 0.0},
+    10: {"meanflow_one_step_share": 0.0},
 }
 OLDEST_FORMAT_VERSION = 2
 # The fewest SDE steps that sample the trained marginals about as well as the Euler ODE at
@@ -145,6 +146,13 @@ class DecoderConfig:
     real-time chunking (`rtc_max_delay` > 0), whose one-step chunk under a committed prefix the identity
     does not learn on every task (docs/benchmarks/rtc.md), "identity" otherwise.
     Format-4 files, older than the field, read as "identity"."""
+    meanflow_one_step_share: Optional[float] = None
+    """MeanFlow: the share of the r ≠ t training rows set to the whole interval (t, r) = (0, 1), the jump a
+    1-step chunk makes (`flows.losses.sample_meanflow_times`); ordered uniform pairs land near it rarely.
+    None (resolved on construction and saved resolved): 0.25 for a mean_flow decoder trained with real-time
+    chunking and the split target, whose one-step chunk then follows a weakly informative committed prefix
+    (docs/benchmarks/rtc.md), 0 otherwise (without a prefix the identity target collapses to one mode with
+    such rows; docs/benchmarks/meanflow_ablations.md). Format-9 files read 0."""
     flow_prediction: str = "velocity"
     """What the flow matching / MeanFlow head outputs: "velocity" itself, or "sample", the clean chunk x̂
     from which v = (x̂ − x)/(1 − t) (`velocity_from_sample`), so that no step has to carry the noise."""
@@ -274,6 +282,9 @@ class DecoderConfig:
     def __post_init__(self) -> None:
         if self.meanflow_target is None:
             self.meanflow_target = "split" if self.decoder_type == "mean_flow" and self.rtc_max_delay else "identity"
+        if self.meanflow_one_step_share is None:
+            self.meanflow_one_step_share = 0.25 if (self.decoder_type == "mean_flow" and self.rtc_max_delay
+                                                    and self.meanflow_target == "split") else 0.0
         self.validate()
 
     # ------------------------------------------------------------------ validation
@@ -304,6 +315,10 @@ class DecoderConfig:
                              f"rtc_max_delay={self.rtc_max_delay}")
         _choice("meanflow_dudt", self.meanflow_dudt, MEANFLOW_DUDT)
         _choice("meanflow_target", self.meanflow_target, MEANFLOW_TARGETS)
+        share = self.meanflow_one_step_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 1.0:
+            raise ValueError(f"meanflow_one_step_share: expected a fraction of the r != t rows in [0, 1] (None: the "
+                             f"resolved default), got {share!r}")
         if self.flow_sde_t_min is not None:
             _finite("flow_sde_t_min", self.flow_sde_t_min)
             if not 0.0 < self.flow_sde_t_min <= 1.0:

@@ -58,7 +58,7 @@ PLUGIN_FIELDS_ADDED = (
     "intermediate_size", "rms_norm_eps", "rope_theta", "flow_sde_eps", "flow_sde_clip_t", "flow_sde_t_min",
     "meanflow_time_mean", "meanflow_time_std", "meanflow_adaptive_c", "meanflow_dudt", "rtc_guidance_weight",
     "rtc_schedule", "rtc_horizon", "rtc_max_delay", "rtc_delay_dist", "rtc_balance_rows", "rtc_prefix_noise",
-    "default_ctrl_freq", "noise_actor_hidden", "noise_actor_bound", "n_obs_steps")
+    "default_ctrl_freq", "noise_actor_hidden", "noise_actor_bound", "n_obs_steps", "meanflow_one_step_share")
 # Fields each side sets itself: from the features, the tasks and the processors.
 DERIVED = ("state_dim", "action_dim", "cameras", "context_dim", "normalization_mode", "clip_actions",
            "action_constant_below", "extra")

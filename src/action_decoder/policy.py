@@ -296,6 +296,7 @@ class ActionDecoderPolicy(nn.Module, PyTorchModelHubMixin, library_name=model_ca
                                  time_std=cfg.meanflow_time_std, adaptive_p=cfg.meanflow_adaptive_p,
                                  adaptive_c=cfg.meanflow_adaptive_c, time_dist=cfg.meanflow_time_dist,
                                  dudt=cfg.meanflow_dudt, target=cfg.meanflow_target,
+                                 one_step_share=cfg.meanflow_one_step_share,
                                  rtc_max_delay=cfg.rtc_max_delay, rtc_delay_dist=cfg.rtc_delay_dist,
                                  rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
                                  rtc_delays=delays)

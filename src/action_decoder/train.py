@@ -110,6 +110,8 @@ class TrainConfig:
     """MeanFlow: distribution of the times (t, r)."""
     meanflow_target: Optional[Literal["identity", "split"]] = None
     """MeanFlow: target of the r != t rows, the MeanFlow identity or interval consistency (None: split with --rtc-max-delay, else identity)."""
+    meanflow_one_step_share: Optional[float] = None
+    """MeanFlow: share of the r != t rows trained on the whole interval (t, r) = (0, 1) (None: 0.25 with --rtc-max-delay and the split target, else 0)."""
     flow_prediction: Optional[Literal["velocity", "sample"]] = None
     """Flow head output: velocity or the clean chunk (None: sample for MeanFlow, velocity for FM)."""
     rtc_max_delay: int = 0
@@ -361,6 +363,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         context_dim=len(tasks) if len(tasks) > 1 else None,
         meanflow_ratio_r_neq_t=cfg.meanflow_ratio_r_neq_t, meanflow_adaptive_p=cfg.meanflow_adaptive_p,
         meanflow_time_dist=cfg.meanflow_time_dist, meanflow_target=cfg.meanflow_target,
+        meanflow_one_step_share=cfg.meanflow_one_step_share,
         flow_prediction=flow_prediction(cfg), rtc_max_delay=cfg.rtc_max_delay,
         rtc_delay_dist=cfg.rtc_delay_dist, rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
         extra={"tasks": tasks, "train": asdict(cfg),

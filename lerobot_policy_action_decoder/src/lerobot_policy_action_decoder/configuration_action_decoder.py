@@ -63,6 +63,7 @@ class ActionDecoderConfig(PreTrainedConfig):
     meanflow_time_dist: str = "uniform"
     meanflow_adaptive_p: float = 0.5
     meanflow_target: str | None = None     # None: "split" with rtc_max_delay > 0, else "identity" (the core's rule)
+    meanflow_one_step_share: float | None = None   # None: 0.25 with rtc_max_delay > 0 and the split target, else 0
     # Action Expert
     hidden_size: int = 96
     num_hidden_layers: int = 3
