@@ -16,6 +16,8 @@ SRC = ROOT / "src" / "action_decoder"
 LAUNCHERS = {"accelerate"}         # declared for `accelerate launch`, never imported
 # The [docs] extra: `python -m mkdocs build` (tests/test_docs.py) runs them, nothing imports them.
 LAUNCHERS |= {"mkdocs", "mkdocs-material", "mkdocstrings", "mkdocstrings-python"}
+# The [test] extra's pytest plugin: the README's test command (`pytest -n auto`) loads it, nothing imports it.
+LAUNCHERS |= {"pytest-xdist"}
 # (file under src/action_decoder, code it contains, distribution, oldest release that runs it)
 FEATURES = [("expert/attention.py", "enable_gqa=True", "torch", (2, 5)),
             ("expert/conditioning.py", '"layers"', "transformers", (4, 54))]    # Cache.layers[i].keys
