@@ -210,8 +210,9 @@ def rtc_target(decoder: str, max_delay: int, meanflow_target: str | None = None)
 def trained_policies(task: str, decoder: str, budget, seed: int, runs: Path, draw, state_dim: int,
                      action_dim: int, arms=ARMS, meanflow_target: str | None = None) -> dict:
     """{"plain": policy, "rtc": policy, "train_cpu_s": {...}} (the weights `arms` need): trained once
-    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>][bal][split]][budget_suffix]-seed<s>; the
-    RTC-trained MeanFlow weights with `meanflow_target` (None: the library's default, `rtc_target`)."""
+    (benchmarks.multimodal.train), kept under runs/<task>-<decoder>[-rtc4[<dist>][bal][split][os<share>]][budget_suffix]-seed<s>
+    (os<share>: the one-step share the library resolves for these weights; a --mm-recipe override is named by
+    budget_suffix); the RTC-trained MeanFlow weights with `meanflow_target` (None: the library's default, `rtc_target`)."""
     from action_decoder import ActionDecoderPolicy
     from benchmarks.multimodal import Budget, train
 
