@@ -304,9 +304,12 @@ def main(argv=None) -> None:
     p.add_argument("--rtc-meanflow-target", default=None, choices=["identity", "split"],
                    help="the MeanFlow target of the RTC-trained weights (train "
                         "--meanflow-target; default: train's, split)")
+    p.add_argument("--rtc-perturbed-prefixes", type=int, default=None,
+                   help="metaworld part: perturbed-prefix copies of each frame for the RTC-trained weights "
+                        "(train --perturbed-prefixes; default: train's)")
     p.add_argument("--rtc-balance-rows", action="store_true",
                    help="the RTC-trained weights weight loss row j by 1/P(d <= j) (train --rtc-balance-rows)")
-    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal][split]]/final")
+    p.add_argument("--runs", default="outputs/rtc", help="checkpoints: <runs>/<task>-<decoder>[-rtc4[exp][bal][split][os<share>][pp<copies>]]/final")
     p.add_argument("--json", default="docs/benchmarks/rtc.json", help="horizons part: rows")
     p.add_argument("--multimodal-json", default="docs/benchmarks/rtc_multimodal.json")
     p.add_argument("--modes-json", default="docs/benchmarks/rtc_modes.json")

@@ -465,13 +465,24 @@ def multimodal_section(rows: list[dict]) -> list[str]:
 
 # ----------------------------------------------------------------------------------------- Meta-World
 def rtc_suffix(max_delay: int, delay_dist: str, balance_rows: bool = False, meanflow_target: str = "identity",
-               one_step_share: float = 0.0) -> str:
+               one_step_share: float = 0.0, perturbed_prefixes: int = 0) -> str:
     """The run directory's suffix of RTC-trained weights: -rtc<N>, the delay distribution unless uniform,
-    "bal" with balanced row weights, "split" with MeanFlow's interval-consistency target and os<share> with
-    MeanFlow rows at (t, r) = (0, 1) (`DecoderConfig.meanflow_one_step_share`)."""
+    "bal" with balanced row weights, "split" with MeanFlow's interval-consistency target, os<share> with
+    MeanFlow rows at (t, r) = (0, 1) (`DecoderConfig.meanflow_one_step_share`) and pp<copies> with
+    demonstrations' perturbed-prefix copies (`train --perturbed-prefixes`)."""
     return (f"-rtc{max_delay}{'' if delay_dist == 'uniform' else delay_dist}{'bal' if balance_rows else ''}"
             f"{'split' if meanflow_target == 'split' else ''}"
-            f"{f'os{one_step_share:g}' if one_step_share else ''}") if max_delay else ""
+            f"{f'os{one_step_share:g}' if one_step_share else ''}"
+            f"{f'pp{perturbed_prefixes}' if perturbed_prefixes else ''}") if max_delay else ""
+
+
+def rtc_perturbed_prefixes(decoder: str, max_delay: int, copies: int | None = None) -> int:
+    """The perturbed-prefix copies `action-decoder train` gives the generated demonstrations of `decoder` with
+    --rtc-max-delay `max_delay` and --perturbed-prefixes `copies` (None: its default)."""
+    from action_decoder.train import perturbed_prefixes
+
+    cfg = TrainConfig(decoder=decoder, rtc_max_delay=max_delay, perturbed_prefixes=copies)
+    return getattr(perturbed_prefixes(cfg), "copies", 0)
 
 
 def rtc_one_step_share(decoder: str, max_delay: int, meanflow_target: str) -> float:
@@ -502,10 +513,12 @@ def run_suffix(train_steps: int, train_seed: int) -> str:
 
 def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_dist: str = "uniform",
                     balance_rows: bool = False, train_steps: int | None = None, train_seed: int | None = None,
-                    meanflow_target: str | None = None) -> Path:
+                    meanflow_target: str | None = None, perturbed_prefixes: int | None = None) -> Path:
     """`action-decoder train` defaults (plus --rtc-max-delay, --rtc-delay-dist, --rtc-balance-rows, --steps,
-    --seed, and for RTC-trained MeanFlow --meanflow-target, None: train's default, and the one-step share the
-    library resolves for it), once, under runs/<task>-<decoder>[-rtc<N>[<dist>][bal][split][os<share>]][-<steps>steps][-seed<s>]."""
+    --seed, --perturbed-prefixes, None: train's default for these weights, and for RTC-trained MeanFlow
+    --meanflow-target, None: train's default, and the one-step share the library resolves for it), once (an
+    interrupted run continues from its newest checkpoint), under
+    runs/<task>-<decoder>[-rtc<N>[<dist>][bal][split][os<share>][pp<copies>]][-<steps>steps][-seed<s>]."""
     import subprocess
     import sys
 
@@ -513,18 +526,22 @@ def train_metaworld(task: str, decoder: str, runs: Path, max_delay: int, delay_d
     train_seed = TrainConfig.seed if train_seed is None else train_seed
     target = rtc_target(decoder, max_delay, meanflow_target)
     share = rtc_one_step_share(decoder, max_delay, target)
-    out = runs / (f"{task.split('/')[-1]}-{decoder}{rtc_suffix(max_delay, delay_dist, balance_rows, target, share)}"
+    copies = rtc_perturbed_prefixes(decoder, max_delay, perturbed_prefixes) if max_delay else 0
+    out = runs / (f"{task.split('/')[-1]}-{decoder}"
+                  f"{rtc_suffix(max_delay, delay_dist, balance_rows, target, share, copies)}"
                   f"{run_suffix(train_steps, train_seed)}")
     if not (out / "final" / "model.safetensors").is_file():
         cmd = [sys.executable, "-m", "action_decoder.cli", "train", "--task", task, "--decoder", decoder,
                "--output-dir", str(out), "--eval-episodes", "0", "--no-progress",
                "--steps", str(train_steps), "--seed", str(train_seed)]
-        cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist] if max_delay else []
+        cmd += ["--rtc-max-delay", str(max_delay), "--rtc-delay-dist", delay_dist,
+                "--perturbed-prefixes", str(copies)] if max_delay else []
         cmd += ["--rtc-balance-rows"] if max_delay and balance_rows else []
+        cmd += ["--resume"] if (out / "checkpoints").is_dir() else []
         cmd += ["--meanflow-target", target, "--meanflow-one-step-share", f"{share:g}"] \
             if decoder == "mean_flow" and max_delay else []
         out.mkdir(parents=True, exist_ok=True)
-        with open(out.with_suffix(".log"), "a") as fh:
+        with open(out.parent / f"{out.name}.log", "a") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True,
                            env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
     return out / "final"
@@ -543,7 +560,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
         need = {"rtc" if a == "trained" else "plain" for a in args.arms}        # train only the weights needed
         ckpts = {k: train_metaworld(task, decoder, Path(args.runs), MAX_DELAY if k == "rtc" else 0,
                                     args.rtc_delay_dist, args.rtc_balance_rows, train_steps, train_seed,
-                                    getattr(args, "rtc_meanflow_target", None))
+                                    getattr(args, "rtc_meanflow_target", None),
+                                    getattr(args, "rtc_perturbed_prefixes", None))
                  for k in sorted(need)}
         pols = {k: ActionDecoderPolicy.from_pretrained(v).eval() for k, v in ckpts.items()}
         for arm in args.arms:
@@ -569,6 +587,8 @@ def run_metaworld(task: str, decoder: str, steps: int, args, command: str) -> li
                              if arm == "trained" and decoder == "mean_flow" else None,
                              "rtc_meanflow_one_step_share": pols["rtc"].config.meanflow_one_step_share
                              if arm == "trained" and decoder == "mean_flow" else None,
+                             "rtc_perturbed_prefixes": perturbed_copies(pols["rtc"].config)
+                             if arm == "trained" else None,
                              "date": time.strftime("%Y-%m-%d"),
                              "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                         f"{torch.get_num_threads()} torch thread"})
@@ -586,12 +606,18 @@ def _seed(r: dict) -> int:
     return r.get("train_seed", TrainConfig.seed)
 
 
+def perturbed_copies(config) -> int:
+    """The perturbed-prefix copies a checkpoint's demonstrations had (`train --perturbed-prefixes`, saved
+    resolved; checkpoints that predate it had none)."""
+    return int(config.extra.get("train", {}).get("perturbed_prefixes") or 0)
+
+
 def arm_label(r: dict) -> str:
-    """The row's arm, naming the MeanFlow target of RTC-trained weights when it is not the identity and their
-    share of rows at (t, r) = (0, 1) when it is not 0."""
-    share = r.get("rtc_meanflow_one_step_share")
+    """The row's arm, naming the MeanFlow target of RTC-trained weights when it is not the identity, their
+    share of rows at (t, r) = (0, 1) when it is not 0 and their demonstrations' perturbed-prefix copies."""
+    share, copies = r.get("rtc_meanflow_one_step_share"), r.get("rtc_perturbed_prefixes")
     return r["arm"] + (", split target" if r.get("rtc_meanflow_target") == "split" else "") + \
-        (f", one-step rows {share:g}" if share else "")
+        (f", one-step rows {share:g}" if share else "") + (f", perturbed prefixes {copies}" if copies else "")
 
 
 def arm_labels(rows: list[dict]) -> list[str]:
@@ -640,7 +666,10 @@ def metaworld_section(rows: list[dict], tasks: list[str]) -> list[str]:
                     f"Settings, delays and arms not listed are not measured."
                     + (" \"trained, split target\": MeanFlow weights trained with RTC and the interval-consistency "
                        "target (`train --meanflow-target split`); \"trained\": the MeanFlow identity."
-                       if any(r.get("rtc_meanflow_target") == "split" for r in rows) else ""), ""]
+                       if any(r.get("rtc_meanflow_target") == "split" for r in rows) else "")
+                    + (" \"perturbed prefixes N\": RTC-trained on demonstrations with N perturbed-prefix copies of each "
+                       "frame (`train --perturbed-prefixes N`); without it, on the demonstrations alone."
+                       if any(r.get("rtc_perturbed_prefixes") for r in rows) else ""), ""]
     for budget in sorted({_budget(r) for r in rows}):
         at = [r for r in rows if _budget(r) == budget]
         lines += [f"### Trained {budget} steps", "",

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.rtc_modes import LABEL, MAX_DELAY, H, S, _budget, _seed, train_metaworld
+from benchmarks.rtc_modes import LABEL, MAX_DELAY, H, S, _budget, _seed, perturbed_copies, train_metaworld
 
 FRAME_STRIDE = 2                                # every second frame of the demonstrations
 NOISE_SEED = 1
@@ -61,7 +61,8 @@ def run_prefix_fit(task: str, decoder: str, steps: int, args, command: str) -> l
     rows = []
     for train_seed in getattr(args, "train_seeds", None) or [TrainConfig.seed]:
         ckpt = train_metaworld(task, decoder, Path(args.runs), MAX_DELAY, args.rtc_delay_dist, args.rtc_balance_rows,
-                               train_steps, train_seed, getattr(args, "rtc_meanflow_target", None))
+                               train_steps, train_seed, getattr(args, "rtc_meanflow_target", None),
+                               getattr(args, "rtc_perturbed_prefixes", None))
         policy = ActionDecoderPolicy.from_pretrained(ckpt).eval()
         trained = policy.config.extra["train"]                                  # the `train` options it ran with
         state, actions = demo_chunks(task, trained["demos"], trained["seed"], trained["demo_noise"],
@@ -72,6 +73,7 @@ def run_prefix_fit(task: str, decoder: str, steps: int, args, command: str) -> l
                          "train_steps": train_steps, "train_seed": train_seed, "chunks": len(state),
                          "mean_abs_error": err, "rtc_delay_dist": policy.config.rtc_delay_dist,
                          "rtc_meanflow_target": policy.config.meanflow_target if decoder == "mean_flow" else None,
+                         "rtc_perturbed_prefixes": perturbed_copies(policy.config),
                          "checkpoint": str(ckpt), "command": command, "date": time.strftime("%Y-%m-%d"),
                          "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores shared, "
                                     f"{torch.get_num_threads()} torch thread"})
@@ -82,12 +84,13 @@ def run_prefix_fit(task: str, decoder: str, steps: int, args, command: str) -> l
 
 def row_key(r: dict) -> tuple:
     return (r["task"], r["decoder"], r["steps"], r["delay"], _budget(r), _seed(r), r.get("rtc_delay_dist"),
-            r.get("rtc_meanflow_target"))
+            r.get("rtc_meanflow_target"), r.get("rtc_perturbed_prefixes") or 0)
 
 
 def weights_label(r: dict) -> str:
-    target = r.get("rtc_meanflow_target")
-    return f"{r.get('rtc_delay_dist')} delays" + (f", {target} target" if target else "")
+    target, copies = r.get("rtc_meanflow_target"), r.get("rtc_perturbed_prefixes")
+    return f"{r.get('rtc_delay_dist')} delays" + (f", {target} target" if target else "") + \
+        (f", perturbed prefixes {copies}" if copies else "")
 
 
 def prefix_section(rows: list[dict]) -> list[str]:

@@ -784,12 +784,23 @@ def test_meta_world_training_runs_the_cli_with_the_budget_and_seed_under_their_o
     calls = []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: calls.append(cmd))
     out = train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 2)
-    assert out == tmp_path / "push-mean_flow-rtc4expsplitos0.25-5000steps-seed2" / "final"     # the default target
+    assert out == tmp_path / "push-mean_flow-rtc4expsplitos0.25-5000steps-seed2" / "final"    # the defaults
     cmd = calls[0]
     assert cmd[cmd.index("--steps") + 1] == "5000" and cmd[cmd.index("--seed") + 1] == "2"
     assert cmd[cmd.index("--rtc-max-delay") + 1] == "4" and cmd[cmd.index("--rtc-delay-dist") + 1] == "exp"
+    assert cmd[cmd.index("--perturbed-prefixes") + 1] == "0"          # MeanFlow's default: none
     assert cmd[cmd.index("--meanflow-target") + 1] == "split" and cmd[cmd.index("--meanflow-one-step-share") + 1] == "0.25"
+    assert "--resume" not in cmd
+    # An interrupted run (checkpoints, no final weights) continues from its newest checkpoint.
+    (out.parent / "checkpoints" / "step_0001000").mkdir(parents=True)
+    train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 2)
+    assert "--resume" in calls[-1] and [a for a in calls[-1] if a != "--resume"] == cmd
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0) == tmp_path / "push-mean_flow" / "final"
+    assert "--perturbed-prefixes" not in calls[-1]
+    # Weights trained on the demonstrations alone live apart from the default's.
+    out = train_metaworld("metaworld/push", "flow_matching", tmp_path, 4, "exp", False, 5000, 0, None, 0)
+    assert out.parent.name == "push-flow_matching-rtc4exp-5000steps"
+    assert calls[-1][calls[-1].index("--perturbed-prefixes") + 1] == "0"
 
 
 def test_meta_world_split_target_weights_get_their_own_directory_command_and_rows(tmp_path, monkeypatch):
@@ -806,7 +817,7 @@ def test_meta_world_split_target_weights_get_their_own_directory_command_and_row
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 0, "exp", False, 5000, 0, "split").parent.name \
         == "push-mean_flow-5000steps" and "--meanflow-target" not in calls[-1]
     assert train_metaworld("metaworld/push", "flow_matching", tmp_path, 4, "exp", False, 5000, 0, "split").parent.name \
-        == "push-flow_matching-rtc4exp-5000steps" and "--meanflow-target" not in calls[-1]
+        == "push-flow_matching-rtc4exppp3-5000steps" and "--meanflow-target" not in calls[-1]
     assert rtc_suffix(4, "exp", False, "identity") == "-rtc4exp" and rtc_suffix(0, "exp", False, "split") == ""
     assert rtc_suffix(4, "exp", False, "split", 0.25) == "-rtc4expsplitos0.25" and rtc_suffix(0, "exp", False, "split", 0.25) == ""
     assert train_metaworld("metaworld/push", "mean_flow", tmp_path, 4, "exp", False, 5000, 0, "identity").parent.name \
@@ -818,6 +829,9 @@ def test_meta_world_split_target_weights_get_their_own_directory_command_and_row
     assert arm_labels([split, identity, naive]) == ["naive", "trained", "trained, split target"]
     one_step = {**split, "rtc_meanflow_one_step_share": 0.25}
     assert arm_label(one_step) == "trained, split target, one-step rows 0.25" and row_key(one_step) != row_key(split)
+    perturbed = {**one_step, "rtc_perturbed_prefixes": 3}
+    assert arm_label(perturbed) == "trained, split target, one-step rows 0.25, perturbed prefixes 3"
+    assert row_key(perturbed) != row_key(one_step) and rtc_suffix(4, "exp", False, "split", 0.25, 3) == "-rtc4expsplitos0.25pp3"
     page = "\n".join(metaworld_section([identity, split, naive], ["metaworld/push"]))
     assert "| MF K=1 | 2 | trained | 1 | 0 | 80.0 |" in page and "| MF K=1 | 2 | trained, split target | 1 | 0 | 20.0 |" in page
     assert "| MF K=1 | trained, split target | 20 |" in page and "interval-consistency" in page

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -33,6 +33,14 @@ class RecordConfig:
     the video features observation.images.<camera>. None: no pixels."""
     image_size: Optional[int] = None
     """Rendered frames are image_size × image_size pixels (None: 64; --layout lerobot renders at LeRobot's 480)."""
+    perturbed_prefixes: int = 0
+    """Training-time RTC data: copies of each frame whose committed prefix is the expert's actions shifted and noised, labelled by the expert from where it leads (0: none)."""
+    rtc_max_delay: int = 4
+    """With --perturbed-prefixes: the longest prefix, in actions (train on the dataset with --rtc-max-delay at least this)."""
+    perturbed_prefix_noise: float = 0.2
+    """With --perturbed-prefixes: std of the Gaussian noise on a prefix, in the env's action units."""
+    perturbed_prefix_shift: int = 2
+    """With --perturbed-prefixes: largest time shift of a prefix from the expert's own actions, in control steps."""
     layout: Literal["library", "lerobot"] = "library"
     """library: the simulator's 39-d state, cameras as observation.images.<camera>; lerobot: what LeRobot's Meta-World env (lerobot-eval --env.type=metaworld) observes, the 4-d agent position and with --cameras corner2 its observation.image."""
 
@@ -51,6 +59,26 @@ def check_writable(out: Path, option: str = "--output-dir") -> None:
                          f"writable --output-dir") from None
 
 
+def perturbed_prefixes(cfg: RecordConfig):
+    """`data.perturbed_prefixes.PerturbedPrefixes` of --perturbed-prefixes, or None without them (then the
+    options that shape them are refused, in one line, if given)."""
+    from .data.perturbed_prefixes import PerturbedPrefixes
+
+    copies = cfg.perturbed_prefixes
+    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+        raise ValueError(f"--perturbed-prefixes: expected an integer >= 0 (copies of each frame), got {copies!r}")
+    if copies:
+        return PerturbedPrefixes(copies, cfg.rtc_max_delay, cfg.perturbed_prefix_noise, cfg.perturbed_prefix_shift)
+    defaults = {f.name: f.default for f in fields(RecordConfig)}
+    tuned = [f"--{k.replace('_', '-')} {getattr(cfg, k)}" for k in ("rtc_max_delay", "perturbed_prefix_noise",
+                                                                     "perturbed_prefix_shift")
+             if getattr(cfg, k) != defaults[k]]
+    if tuned:
+        raise ValueError(f"{', '.join(tuned)}: shapes perturbed prefixes, which are recorded with --perturbed-prefixes "
+                         f"N > 0 (got 0); add it or drop {', '.join(tuned)}")
+    return None
+
+
 def run_record(cfg: RecordConfig) -> Path:
     """Record ``cfg.demos`` demonstrations per task into ``cfg.output_dir``; prints one summary line."""
     from .data.demos import record_demos
@@ -66,13 +94,17 @@ def run_record(cfg: RecordConfig) -> Path:
     if cfg.layout == "lerobot" and cfg.image_size not in (None, 480):
         raise ValueError(f"--image-size: --layout lerobot records LeRobot's Meta-World camera at its 480 x 480 px; "
                          f"got --image-size {cfg.image_size} (drop it)")
+    prefixes = perturbed_prefixes(cfg)
     check_writable(Path(cfg.output_dir))
     size = cfg.image_size or (480 if cfg.layout == "lerobot" else 64)
     root = record_demos(cfg.task, cfg.demos, cfg.output_dir, cfg.seed, cfg.action_noise, cameras=cfg.cameras,
-                        image_size=size, layout=cfg.layout, action_label=cfg.action_label)
+                        image_size=size, layout=cfg.layout, action_label=cfg.action_label, prefixes=prefixes)
     info = json.loads((root / "meta" / "info.json").read_text())
     cameras = [k for k, v in info["features"].items() if v.get("dtype") == "video"]
-    print(f"recorded {info['total_episodes']} demonstrations ({info['total_frames']} frames, {info['total_tasks']} "
+    demos = info["total_episodes"] // (1 + (prefixes.copies if prefixes else 0))
+    n = info["total_episodes"] - demos if prefixes else 0
+    copies = f" and {n} perturbed-prefix cop{'y' if n == 1 else 'ies'}" if prefixes else ""
+    print(f"recorded {demos} demonstrations{copies} ({info['total_frames']} frames, {info['total_tasks']} "
           f"task(s), fps {info['fps']}"
           + (f", cameras {', '.join(cameras)} at {size}x{size} px" if cameras else "")
           + (", LeRobot's Meta-World observation" if cfg.layout == "lerobot" else "")

@@ -122,6 +122,12 @@ class TrainConfig:
     """Training-time RTC: weight row j of the loss by 1/P(d ≤ j), the share of chunks whose loss covers it."""
     rtc_prefix_noise: float = 0.0
     """Training-time RTC: std of the noise added to the committed prefix the network is fed, in normalised action units (0: clean)."""
+    perturbed_prefixes: Optional[int] = None
+    """Training-time RTC on generated demonstrations: copies of each frame whose committed prefix is the expert's actions shifted and noised, labelled by the expert from where it leads (None: 3 for flow_matching with --rtc-max-delay, else 0)."""
+    perturbed_prefix_noise: float = 0.2
+    """Std of the Gaussian noise on a perturbed prefix, in the env's action units."""
+    perturbed_prefix_shift: int = 2
+    """Largest time shift of a perturbed prefix from the expert's own actions, in control steps."""
     checkpoint_every: int = 500
     """Steps between resumable checkpoints."""
     log_every: int = 25
@@ -196,9 +202,12 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
 
     if cfg.dataset is None:
         if not quiet:
-            print(f"demonstrations: {cfg.demos} per task of {cfg.task} (cached after the first run)", flush=True)
+            prefixes = perturbed_prefixes(cfg)
+            copies = (f", each with {prefixes.copies} perturbed-prefix cop{'y' if prefixes.copies == 1 else 'ies'}"
+                      if prefixes else "")
+            print(f"demonstrations: {cfg.demos} per task of {cfg.task}{copies} (cached after the first run)", flush=True)
         episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg), cameras=cfg.cameras,
-                              image_size=cfg.image_size)
+                              image_size=cfg.image_size, prefixes=perturbed_prefixes(cfg))
         _say_cameras(episodes, quiet)
         return ChunkDataset(episodes, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks), None
     cameras = None if cfg.cameras is None else [c for item in cfg.cameras for c in item.split(",") if c]
@@ -292,6 +301,42 @@ def demo_noise(cfg: TrainConfig) -> float:
     return cfg.demo_noise
 
 
+PERTURBED_PREFIX_COPIES = {"flow_matching": 3, "mean_flow": 0}
+"""Perturbed-prefix copies per frame that generated demonstrations get with --rtc-max-delay, per decoder: MeanFlow
+trained on them lost success without a prefix (docs/benchmarks/rtc.md)."""
+
+
+def perturbed_prefixes(cfg: TrainConfig):
+    """The perturbed-prefix copies generated demonstrations get (`data.perturbed_prefixes.PerturbedPrefixes`,
+    prefixes of 1..--rtc-max-delay actions), or None: --perturbed-prefixes, None resolving to the decoder's
+    `PERTURBED_PREFIX_COPIES` with --rtc-max-delay and to none without; a --dataset is taken as it is."""
+    from .data.perturbed_prefixes import PerturbedPrefixes
+
+    copies, defaults = cfg.perturbed_prefixes, {f.name: f.default for f in fields(TrainConfig)}
+    if copies is not None and (isinstance(copies, bool) or not isinstance(copies, int) or copies < 0):
+        raise ValueError(f"--perturbed-prefixes: expected an integer >= 0 (copies of each frame), got {copies!r}")
+    tuned = [f"--{k.replace('_', '-')} {getattr(cfg, k)}" for k in ("perturbed_prefix_noise", "perturbed_prefix_shift")
+             if getattr(cfg, k) != defaults[k]]
+    if cfg.dataset is not None:
+        if copies or tuned:
+            raise ValueError(f"{', '.join([f'--perturbed-prefixes {copies}'] if copies else tuned)}: perturbed "
+                             f"prefixes are recorded with the simulator's expert, and --dataset {cfg.dataset} is taken "
+                             f"as it is; record them into a dataset with `action-decoder record --perturbed-prefixes "
+                             f"N --rtc-max-delay D`, or drop --dataset")
+        return None
+    if copies and not cfg.rtc_max_delay:
+        raise ValueError(f"--perturbed-prefixes: training-time real-time chunking data, expected with --rtc-max-delay "
+                         f"N > 0 (the longest prefix), got --perturbed-prefixes {copies} without it")
+    if copies is None:
+        copies = PERTURBED_PREFIX_COPIES.get(cfg.decoder, 0) if cfg.rtc_max_delay else 0
+    if not copies:
+        if tuned:
+            raise ValueError(f"{', '.join(tuned)}: shapes perturbed prefixes, and this run has none "
+                             f"(--perturbed-prefixes {cfg.perturbed_prefixes}, --rtc-max-delay {cfg.rtc_max_delay})")
+        return None
+    return PerturbedPrefixes(copies, cfg.rtc_max_delay, cfg.perturbed_prefix_noise, cfg.perturbed_prefix_shift)
+
+
 def state_layout(cfg: TrainConfig) -> str:
     """The layout `--state-layout auto` resolves to: flat for a --dataset; for generated Meta-World
     demonstrations metaworld, or metaworld_proprio when they come with cameras (`--cameras`)."""
@@ -366,7 +411,7 @@ def decoder_config(cfg: TrainConfig, state_dim: int, action_dim: int, tasks: lis
         meanflow_one_step_share=cfg.meanflow_one_step_share,
         flow_prediction=flow_prediction(cfg), rtc_max_delay=cfg.rtc_max_delay,
         rtc_delay_dist=cfg.rtc_delay_dist, rtc_balance_rows=cfg.rtc_balance_rows, rtc_prefix_noise=cfg.rtc_prefix_noise,
-        extra={"tasks": tasks, "train": asdict(cfg),
+        extra={"tasks": tasks, "train": {**asdict(cfg), "perturbed_prefixes": getattr(perturbed_prefixes(cfg), "copies", 0)},
                **({"observation_layout": "lerobot"} if observation_layout(cfg) == "lerobot" else {})})
 
 
@@ -472,7 +517,8 @@ def _effective(cfg: TrainConfig) -> dict:
         task=None if on_dataset else resolve_tasks(cfg.task),   # --dataset ignores --task and --demos
         demos=None if on_dataset else cfg.demos, val_fraction=cfg.val_fraction if on_dataset else None,
         state_layout=state_layout(cfg), augment_shift=augment_shift(cfg),
-        flow_prediction=flow_prediction(cfg), inference_steps=cfg.inference_steps or DEFAULT_STEPS[cfg.decoder])
+        flow_prediction=flow_prediction(cfg), inference_steps=cfg.inference_steps or DEFAULT_STEPS[cfg.decoder],
+        perturbed_prefixes=getattr(perturbed_prefixes(cfg), "copies", 0))
     return {k: v for k, v in values.items() if k not in RESUMABLE}
 
 
@@ -480,10 +526,11 @@ def resume_conflicts(saved: dict, cfg: TrainConfig) -> list[str]:
     """`--field: saved → given` for each setting of `cfg` that differs from the run `saved`
     (a checkpoint's `extra["train"]`). Fields the saved run did not record are not compared."""
     known = {f.name for f in fields(TrainConfig)}
+    saved = {"perturbed_prefixes": 0, **saved}      # runs that predate the field trained without them
     old = TrainConfig(**{**asdict(cfg), **{k: v for k, v in saved.items() if k in known}})
     before, after = _effective(old), _effective(cfg)
     # A default that resolves differently only because another listed field changed is not listed.
-    derived = ("state_layout", "augment_shift", "flow_prediction", "inference_steps")
+    derived = ("state_layout", "augment_shift", "flow_prediction", "inference_steps", "perturbed_prefixes")
     return [f"--{k.replace('_', '-')}: {_fmt(before[k])} → {_fmt(after[k])}" for k in after
             if before[k] != after[k] and (k not in derived or getattr(old, k) != getattr(cfg, k))]
 
@@ -543,6 +590,7 @@ def _check(cfg: TrainConfig) -> None:
                          f"(that is --prediction-type epsilon|sample); got --flow-prediction "
                          f"{cfg.flow_prediction} with --decoder DDPM")
     demo_noise(cfg)
+    perturbed_prefixes(cfg)
     held_out_count(2, cfg.val_fraction)
     require_wandb(cfg.wandb)
 

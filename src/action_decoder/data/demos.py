@@ -22,6 +22,10 @@ expert's reaction to it. With a deterministic expert's clean actions a chunk's f
 a function of its state; with executed ones they are not, which is what a committed prefix in
 training-time real-time chunking can then inform (docs/benchmarks/rtc.md screens it).
 
+``prefixes`` (`data.perturbed_prefixes`) adds, per demonstration, copies of its frames whose labels
+start with a perturbed committed prefix and continue with the expert from where it leads: training
+data for training-time real-time chunking (docs/benchmarks/rtc.md).
+
 ``cameras`` records pixels too: the named Meta-World cameras (corner2, corner, topview, ...) are
 rendered offscreen at every observation (after reset and after each action, aligned with the
 states), ``image_size``² pixels, stored as the video features ``observation.images.<camera>``.
@@ -44,9 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .episodes import ACTION, CONTINUATION, STATE, EpisodeDataset, concat_datasets
+from .episodes import ACTION, CONTINUATION, PREFIX_LENGTH, STATE, EpisodeDataset, concat_datasets
 from .lerobot_format import load_dataset
 from .lerobot_write import replace_dir, write_episodes
+from .perturbed_prefixes import PerturbedPrefixes, perturbed_labels
 
 # The simulator (gymnasium, metaworld, mujoco: the [sim] extra) is imported inside the functions that
 # record demonstrations, so that `--dataset` training and `from action_decoder.data import ...` work
@@ -87,7 +92,7 @@ def cache_root() -> Path:
 
 
 def _cache_state(path: Path, num_episodes: int, first_layout: int) -> str:
-    """``"complete"``: a v3.0 dataset with all episodes, drawn from today's layouts (before
+    """``"complete"``: a v3.0 dataset with all ``num_episodes`` episodes, drawn from today's layouts (before
     SEED_STRIDE, seed s began at layout s); ``"v2.0"``: the same in the older per-episode layout
     (converted in place); ``"missing"`` otherwise (no, partial or stale dataset: recorded anew)."""
     info = path / "meta" / "info.json"
@@ -156,18 +161,24 @@ def expert_continuation(env, expert, prefix: np.ndarray, obs: np.ndarray | None 
 
 
 def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observe=None,
-             action_label: str = "expert") -> dict | None:
+             action_label: str = "expert", prefixes: PerturbedPrefixes | None = None) -> dict | None:
     """One expert episode from layout ``seed``; None if it never succeeds. With ``action_noise``
     the executed action is perturbed (noise drawn from ``seed``); with ``action_label`` "expert" the
     recorded one is not, and each frame keeps the clean continuation; with "executed" the recorded
-    action is the executed one. ``rig`` (`envs.render.CameraObservation`) adds the
+    action is the executed one. ``prefixes`` adds ``"perturbed"``: ``prefixes.copies`` episodes of the
+    same states whose labels start with a perturbed prefix (`perturbed_prefixes`; drawn from
+    ``default_rng([seed, 1])``), and gives the episode itself ``action.continuation`` (its own next
+    actions, the last held, or the clean continuation) and ``action.prefix_length`` 0, as every
+    episode of a dataset has these columns or none. ``rig`` (`envs.render.CameraObservation`) adds the
     frames of its cameras at every recorded state (keys: a camera name, stored as ``observation.images.<name>``,
     or a whole feature key). ``observe`` maps the simulator's state to the recorded one (default: as it is)."""
     from ..envs.metaworld_tasks import MAX_EPISODE_STEPS
 
     obs = env.reset(seed=seed)[0]
     noise = np.random.default_rng(seed)
+    perturb = np.random.default_rng([seed, 1])
     states, actions, continuations, rewards, successes, first_success = [], [], [], [], [], None
+    clean_actions, perturbed = [], []            # the expert's own actions so far; per frame, its perturbed labels
     frames: dict[str, list[np.ndarray]] = {}
     while len(actions) < MAX_EPISODE_STEPS:
         action = expert(obs)                                                   # [D], in [-1, 1]
@@ -175,9 +186,14 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observ
         for camera, frame in (rig(env) if rig is not None else {}).items():   # [S, S, 3] uint8
             frames.setdefault(camera if camera.startswith("observation.") else IMAGE_PREFIX + camera, []).append(frame)
         clean = action
+        if action_noise > 0 and action_label == "expert":
+            continuations.append(expert_continuation(env, expert, action[None]))   # [LOOKAHEAD, D]
+        if prefixes is not None:
+            plan = continuations[-1] if continuations else expert_continuation(env, expert, action[None])
+            perturbed.append(perturbed_labels(np.array(clean_actions, np.float32), plan, prefixes, perturb,
+                                              lambda prefix: expert_continuation(env, expert, prefix)))
+            clean_actions.append(clean)
         if action_noise > 0:
-            if action_label == "expert":
-                continuations.append(expert_continuation(env, expert, action[None]))   # [LOOKAHEAD, D]
             action = np.clip(action + action_noise * noise.standard_normal(action.shape), -1.0, 1.0)
         actions.append(clean if action_label == "expert" else action)
         obs, reward, _, _, info = env.step(action.astype(np.float32))
@@ -193,19 +209,37 @@ def _rollout(env, expert, seed: int, action_noise: float = 0.0, rig=None, observ
                "next.reward": np.asarray(rewards), "next.success": np.asarray(successes), "seed": seed}
     if frames:
         episode["images"] = {k: np.stack(v) for k, v in frames.items()}               # [L, S, S, 3]
-    return {**episode, CONTINUATION: np.stack(continuations)} if continuations else episode
+    if continuations:
+        episode[CONTINUATION] = np.stack(continuations)                               # [L, LOOKAHEAD, D]
+    if prefixes is not None:
+        n = len(actions)
+        if not continuations:
+            follow = np.minimum(np.arange(n)[:, None] + np.arange(LOOKAHEAD), n - 1)   # [L, LOOKAHEAD]
+            episode[CONTINUATION] = episode[ACTION][follow]
+        episode[PREFIX_LENGTH] = np.zeros(n, np.int64)
+        copies = []
+        for c in range(prefixes.copies):
+            labels = np.stack([frame[c][0] for frame in perturbed])                  # [L, LOOKAHEAD, D]
+            copies.append({**{k: v for k, v in episode.items() if k not in (ACTION, CONTINUATION, PREFIX_LENGTH)},
+                           ACTION: labels[:, 0], CONTINUATION: labels,
+                           PREFIX_LENGTH: np.array([frame[c][1] for frame in perturbed], np.int64)})
+        episode["perturbed"] = copies
+    return episode
 
 
 def record_episodes(
     task: str, num_episodes: int, seed: int = 0, max_attempts_factor: float = 3.0, action_noise: float = 0.0,
     cameras: list[str] | None = None, image_size: int = 64, layout: str = "library", action_label: str = "expert",
+    prefixes: PerturbedPrefixes | None = None,
 ) -> tuple[list[dict], float, dict]:
     """Roll out the scripted expert of ``task`` until ``num_episodes`` succeed: the episodes (the
     dicts ``write_episodes`` takes, ``task_index`` 0, ``images`` of ``cameras`` at ``image_size``²
     when given), the env's fps and a ``source`` record (env, versions, seed, first layout,
     attempts, expert success rate, noise, label). ``action_label``: the action kept with ``action_noise`` > 0,
     "expert" (clean, with the continuation) or "executed" (the noisy one). ``layout="lerobot"``: LeRobot's observation
-    (`envs.lerobot_view`; ``cameras`` None or ["corner2"], at LeRobot's 480² whatever ``image_size``)."""
+    (`envs.lerobot_view`; ``cameras`` None or ["corner2"], at LeRobot's 480² whatever ``image_size``).
+    ``prefixes`` (`perturbed_prefixes`) adds ``prefixes.copies`` episodes per demonstration after the
+    demonstrations, each with its demonstration's states (and camera frames) and perturbed-prefix labels."""
     cameras = camera_names(cameras)
     from ..envs import lerobot_view
     from ..envs.metaworld_tasks import SEED_STRIDE, canonical_task, demo_seeds, expert_policy, make_env
@@ -242,7 +276,7 @@ def record_episodes(
     env, expert, episodes = make_env(name, seed), expert_policy(name), []
     try:
         for attempt, layout_seed in enumerate(seeds, start=1):
-            episode = _rollout(env, expert, layout_seed, action_noise, rig, observe, action_label)
+            episode = _rollout(env, expert, layout_seed, action_noise, rig, observe, action_label, prefixes)
             if episode is not None:
                 episodes.append(episode)
             if len(episodes) == num_episodes:
@@ -264,8 +298,10 @@ def record_episodes(
               "post_success_steps": POST_SUCCESS_STEPS, "action_noise": action_noise,
               **({"action_label": action_label} if action_label != "expert" else {}),
               **({"cameras": cameras, "image_size": image_size} if cameras else {}),
-              **({"layout": layout} if layout != "library" else {})}
-    return episodes, round(1.0 / env.unwrapped.dt, 6), source
+              **({"layout": layout} if layout != "library" else {}),
+              **({"perturbed_prefixes": prefixes.record()} if prefixes is not None else {})}
+    copies = [copy for episode in episodes for copy in episode.pop("perturbed", [])]
+    return episodes + copies, round(1.0 / env.unwrapped.dt, 6), source
 
 
 def generate_demos(
@@ -277,12 +313,14 @@ def generate_demos(
     action_noise: float = 0.0,
     cameras: list[str] | None = None,
     image_size: int = 64,
+    prefixes: PerturbedPrefixes | None = None,
 ) -> Path:
     """Directory holding ``num_episodes`` successful expert episodes of ``task`` as a LeRobot v3.0
     dataset, recorded with ``action_noise`` (std of the Gaussian added to each executed action;
-    0: clean rollouts) and with the frames of ``cameras`` (Meta-World names) at ``image_size``².
+    0: clean rollouts), with the frames of ``cameras`` (Meta-World names) at ``image_size``² and, with
+    ``prefixes``, their perturbed-prefix copies (`record_episodes`).
 
-    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>][-cam<a+b>-px<size>]`` when complete. A complete cache in
+    Reuses ``<cache>/metaworld/<task>-n<N>-s<seed>[-dart<σ>][-cam<a+b>-px<size>][-pp…]`` when complete. A complete cache in
     the older v2.0 layout is converted in place (same episodes, no simulator run), saying so in one
     line; anything else is recorded anew. New datasets are written into a temporary sibling and
     renamed into place (concurrent runs never see a partial dataset). Raises ValueError if
@@ -296,9 +334,10 @@ def generate_demos(
         raise ValueError(f"action_noise: expected a standard deviation in [0, 1] (actions span [-1, 1]), "
                          f"got {action_noise!r}")
     suffix = (f"-dart{action_noise:g}" if action_noise > 0 else "") + \
-        (f"-cam{'+'.join(cameras)}-px{image_size}" if cameras else "")
+        (f"-cam{'+'.join(cameras)}-px{image_size}" if cameras else "") + (prefixes.suffix() if prefixes else "")
     final = Path(cache_dir or cache_root()).expanduser() / "metaworld" / f"{name}-n{num_episodes}-s{seed}{suffix}"
-    state = _cache_state(final, num_episodes, demo_seeds(seed, 1)[0]) if isinstance(num_episodes, (int, np.integer)) else "missing"
+    stored = num_episodes * (1 + (prefixes.copies if prefixes else 0))          # demonstrations and their copies
+    state = _cache_state(final, stored, demo_seeds(seed, 1)[0]) if isinstance(num_episodes, (int, np.integer)) else "missing"
     if state == "complete":
         return final
     if state == "v2.0":
@@ -311,7 +350,7 @@ def generate_demos(
             state = "missing"
     if state != "v2.0":
         episodes, fps, source = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
-                                                cameras, image_size)
+                                                cameras, image_size, prefixes=prefixes)
         tasks, extra = [name], {"robot_type": "sawyer", "env": "metaworld", "source": source}
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
@@ -322,14 +361,16 @@ def generate_demos(
 
 def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int = 0, action_noise: float = 0.0,
                  max_attempts_factor: float = 3.0, cameras: list[str] | None = None, image_size: int = 64,
-                 layout: str = "library", action_label: str = "expert") -> Path:
+                 layout: str = "library", action_label: str = "expert",
+                 prefixes: PerturbedPrefixes | None = None) -> Path:
     """Record ``num_episodes`` expert demonstrations of every task in ``spec`` (``metaworld/<task>``,
     comma-separated or a group) into one LeRobot v3.0 dataset at ``output_dir``, with the
     Meta-World task names as task strings (``task_index`` in the order of ``resolve_tasks``) and
     ``"env": "metaworld"`` in ``info.json``; ``cameras`` (Meta-World names) add their frames at
     ``image_size``² as video features ``observation.images.<camera>``. ``layout="lerobot"`` records
     LeRobot's Meta-World observation instead (`record_episodes`), with ``"layout": "lerobot"`` in
-    ``info.json``. ``action_label`` (`record_episodes`): the action kept with ``action_noise`` > 0.
+    ``info.json``. ``action_label`` (`record_episodes`): the action kept with ``action_noise`` > 0;
+    ``prefixes``: each demonstration's perturbed-prefix copies (`record_episodes`).
     ``output_dir`` must be new or empty: an existing dataset is never overwritten."""
     cameras = camera_names(cameras)
     check_action_label(action_label, action_noise)
@@ -341,7 +382,7 @@ def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int
     names, episodes, sources = resolve_tasks(spec), [], {}
     for i, name in enumerate(names):
         eps, fps, sources[name] = record_episodes(name, num_episodes, seed, max_attempts_factor, action_noise,
-                                                  cameras, image_size, layout, action_label)
+                                                  cameras, image_size, layout, action_label, prefixes)
         episodes += [{**ep, "task_index": i} for ep in eps]
     source = sources[names[0]] if len(names) == 1 else {"env": "metaworld", "tasks": sources}
     info = {"robot_type": "sawyer", "env": "metaworld", "source": source}
@@ -353,14 +394,17 @@ def record_demos(spec: str, num_episodes: int, output_dir: str | Path, seed: int
 
 
 def load_demos(spec: str, num_episodes: int, seed: int = 0, action_noise: float = 0.0,
-               cameras: list[str] | None = None, image_size: int = 64) -> EpisodeDataset:
+               cameras: list[str] | None = None, image_size: int = 64,
+               prefixes: PerturbedPrefixes | None = None) -> EpisodeDataset:
     """Expert demonstrations of every task in ``spec`` (generated or cached), concatenated;
     ``task_index`` follows the order of ``resolve_tasks(spec)``. ``cameras`` (Meta-World names, e.g.
-    ``["corner2"]``; None: none) adds ``images`` ``observation.images.<camera>`` of ``image_size``²."""
+    ``["corner2"]``; None: none) adds ``images`` ``observation.images.<camera>`` of ``image_size``²;
+    ``prefixes`` their perturbed-prefix copies (`record_episodes`)."""
     cameras = camera_names(cameras)
     from ..envs.metaworld_tasks import resolve_tasks
 
     keys = [IMAGE_PREFIX + c for c in cameras]
     return concat_datasets([load_dataset(generate_demos(t, num_episodes, seed, action_noise=action_noise,
-                                                        cameras=cameras, image_size=image_size), keys)
+                                                        cameras=cameras, image_size=image_size, prefixes=prefixes),
+                                         keys)
                             for t in resolve_tasks(spec)])
