@@ -201,13 +201,13 @@ def load_training_data(cfg: TrainConfig, quiet: bool = False):
     from .data.lerobot_format import read_info
 
     if cfg.dataset is None:
+        prefixes = perturbed_prefixes(cfg)
         if not quiet:
-            prefixes = perturbed_prefixes(cfg)
             copies = (f", each with {prefixes.copies} perturbed-prefix cop{'y' if prefixes.copies == 1 else 'ies'}"
                       if prefixes else "")
             print(f"demonstrations: {cfg.demos} per task of {cfg.task}{copies} (cached after the first run)", flush=True)
         episodes = load_demos(cfg.task, cfg.demos, cfg.seed, demo_noise(cfg), cameras=cfg.cameras,
-                              image_size=cfg.image_size, prefixes=perturbed_prefixes(cfg))
+                              image_size=cfg.image_size, prefixes=prefixes)
         _say_cameras(episodes, quiet)
         return ChunkDataset(episodes, cfg.horizon, n_obs_steps=cfg.n_obs_steps), list(episodes.tasks), None
     cameras = None if cfg.cameras is None else [c for item in cfg.cameras for c in item.split(",") if c]
